@@ -1,0 +1,14 @@
+//! aim-capture: everything between a recording and an undistorted, posed,
+//! time-stamped frame. It does not depend on the reconstruction code.
+
+pub mod aria;
+pub mod calib;
+pub mod dataset;
+pub mod error;
+pub mod frame;
+pub mod io;
+pub mod undistort;
+pub mod vrs;
+
+pub use error::{Error, Result};
+pub use frame::{Frame, Intrinsics, Phase};

@@ -1,0 +1,130 @@
+//! Benchmarks behind `aim bench ...`: seeded scenes, repeated timings, JSON-ready reports.
+
+use std::time::Instant;
+
+use glam::{Quat, Vec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::camera::{Camera, Intrinsics};
+use crate::render::{backward, render, RenderOptions};
+use crate::splat::{logit, GaussianSet};
+
+/// A seeded random scene that covers the view of [`bench_camera`]: Gaussians
+/// spread through the frustum at depth 2..4, projected standard deviations of
+/// about 0.5..3 px at 256 px, mixed opacities, random rotations, SH degree 3.
+pub fn random_scene(n: usize, seed: u64) -> GaussianSet {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut gs = GaussianSet::new(3);
+    let tan_half = (bench_fov() * 0.5).tan();
+    let focal_256 = 128.0 / tan_half;
+    let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
+    for _ in 0..n {
+        let z: f32 = rng.random_range(2.0..4.0);
+        let x = rng.random_range(-1.0..1.0) * tan_half * z;
+        let y = rng.random_range(-1.0..1.0) * tan_half * z;
+        let sigma_px: f32 = (rng.random_range(0.5f32.ln()..3.0f32.ln())).exp();
+        let base = sigma_px * z / focal_256;
+        let log_scale = Vec3::new(
+            (base * rng.random_range(0.5..2.0)).ln(),
+            (base * rng.random_range(0.5..2.0)).ln(),
+            (base * rng.random_range(0.5..2.0)).ln(),
+        );
+        let q = Quat::from_xyzw(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        )
+        .normalize();
+        let dc = [rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5)];
+        let rest: Vec<f32> = (0..rest_w).map(|_| rng.random_range(-0.1..0.1)).collect();
+        gs.push(Vec3::new(x, y, z), log_scale, [q.w, q.x, q.y, q.z], logit(rng.random_range(0.1..0.9)), dc, &rest);
+    }
+    gs
+}
+
+fn bench_fov() -> f32 {
+    60f32.to_radians()
+}
+
+/// Camera at the origin looking down +z (OpenCV), 60 degree horizontal field of view.
+pub fn bench_camera(size: u32) -> Camera {
+    Camera::new(Intrinsics::from_fov_x(size, size, bench_fov()), glam::Mat4::IDENTITY)
+}
+
+#[derive(Debug, Serialize)]
+pub struct RenderBenchRow {
+    pub resolution: u32,
+    pub gaussians: usize,
+    pub visible: usize,
+    pub tile_entries: usize,
+    pub forward_ms: f64,
+    pub forward_backward_ms: f64,
+    /// Gaussian-pixel alpha evaluations in one forward pass.
+    pub gaussian_pixel_evals: u64,
+    /// Evaluations per second, forward pass.
+    pub forward_evals_per_s: f64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Count the per-pixel Gaussian evaluations the forward pass performs (ignoring
+/// early termination, which the bench scene rarely reaches).
+fn count_evals(r: &crate::render::Render) -> u64 {
+    let mut total = 0u64;
+    for t in 0..(r.bins.tiles_x * r.bins.tiles_y) as usize {
+        let (tx, ty) = (t as u32 % r.bins.tiles_x, t as u32 / r.bins.tiles_x);
+        let rect = [tx * 16, ty * 16, ((tx + 1) * 16).min(r.width) - 1, ((ty + 1) * 16).min(r.height) - 1];
+        for &g in r.bins.tile(t) {
+            let b = r.projected[g as usize].as_ref().expect("binned").bbox;
+            let w = b[2].min(rect[2]) as i64 - b[0].max(rect[0]) as i64 + 1;
+            let h = b[3].min(rect[3]) as i64 - b[1].max(rect[1]) as i64 + 1;
+            total += (w.max(0) * h.max(0)) as u64;
+        }
+    }
+    total
+}
+
+/// Time forward and forward+backward (median of `repeats`) for each size and count.
+pub fn render_bench(sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<RenderBenchRow> {
+    let mut rows = Vec::new();
+    for &n in counts {
+        let gs = random_scene(n, 7);
+        for &size in sizes {
+            let cam = bench_camera(size);
+            let opts = RenderOptions { background: Vec3::splat(0.2), sh_degree: None };
+            let warm = render(&gs, &cam, &opts);
+            let grad: Vec<f32> = (0..warm.image.color.len()).map(|i| ((i % 7) as f32 - 3.0) * 1e-3).collect();
+            let mut fwd = Vec::new();
+            let mut both = Vec::new();
+            for _ in 0..repeats {
+                let t = Instant::now();
+                let r = render(&gs, &cam, &opts);
+                fwd.push(t.elapsed().as_secs_f64() * 1e3);
+                let t = Instant::now();
+                let r2 = render(&gs, &cam, &opts);
+                let g = backward(&gs, &r2, &grad, None, None);
+                both.push(t.elapsed().as_secs_f64() * 1e3);
+                std::hint::black_box((r, g));
+            }
+            let forward_ms = median(fwd);
+            let evals = count_evals(&warm);
+            rows.push(RenderBenchRow {
+                resolution: size,
+                gaussians: n,
+                visible: warm.visible_count(),
+                tile_entries: warm.bins.entries.len(),
+                forward_ms,
+                forward_backward_ms: median(both),
+                gaussian_pixel_evals: evals,
+                forward_evals_per_s: evals as f64 / (forward_ms * 1e-3),
+            });
+        }
+    }
+    rows
+}

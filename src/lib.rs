@@ -1,0 +1,15 @@
+//! aim: streaming, incremental reconstruction of articulated objects from AR
+//! captures ("Articulation in Motion").
+//!
+//! One module per pipeline stage; data flows source -> frames -> trainer ->
+//! model snapshots -> analysis -> exports.
+
+pub mod bench;
+pub mod camera;
+pub mod error;
+pub mod render;
+pub mod splat;
+pub mod synth;
+pub mod train;
+
+pub use error::{Error, Result};

@@ -1,0 +1,156 @@
+//! The differentiable Gaussian rasterizer (CPU reference backend).
+//!
+//! Stages, as in gsplat: project every Gaussian ([`project`]), bin them into
+//! 16x16 tiles in depth order and composite front to back ([`raster`]). The
+//! backward pass runs the same stages in reverse. Conventions: OpenCV camera,
+//! pixel centres at (i + 0.5, j + 0.5), colour = SH + 0.5 clamped at 0,
+//! alpha = min(0.99, opacity * exp(-power)), skip alpha < 1/255, stop when
+//! transmittance would fall below 1e-4, 0.3 px^2 covariance dilation.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::camera::Camera;
+use crate::splat::GaussianSet;
+
+pub mod project;
+pub mod raster;
+pub mod sh;
+
+use project::ProjectionCamera;
+
+/// What to render.
+#[derive(Clone, Copy, Debug)]
+pub struct RenderOptions {
+    pub background: Vec3,
+    /// SH degree used for colour (at most the set's stored degree); None = all stored.
+    pub sh_degree: Option<u32>,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        Self { background: Vec3::ZERO, sh_degree: None }
+    }
+}
+
+/// A rendered view plus the intermediate state its backward pass reuses.
+#[derive(Clone, Debug)]
+pub struct Render {
+    pub width: u32,
+    pub height: u32,
+    pub camera: Camera,
+    pub options: RenderOptions,
+    pub sh_degree: u32,
+    /// Row-major RGB (background included), alpha, accumulated depth (see [`raster::RasterOutput`]).
+    pub image: raster::RasterOutput,
+    pub projected: Vec<Option<project::Projected>>,
+    pub bins: raster::TileBins,
+}
+
+impl Render {
+    /// Expected depth of the visible surface per pixel (accumulated depth / alpha; 0 where empty).
+    pub fn expected_depth(&self) -> Vec<f32> {
+        self.image.depth.iter().zip(&self.image.alpha).map(|(d, a)| if *a > 1e-6 { d / a } else { 0.0 }).collect()
+    }
+
+    /// Number of Gaussians that survived culling.
+    pub fn visible_count(&self) -> usize {
+        self.projected.iter().filter(|p| p.is_some()).count()
+    }
+
+    /// The colour image as 8-bit RGB.
+    pub fn to_rgb8(&self) -> image::RgbImage {
+        let bytes = self.image.color.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+        image::RgbImage::from_raw(self.width, self.height, bytes).expect("buffer matches image size")
+    }
+}
+
+/// Gradients of a loss with respect to everything the render depends on.
+#[derive(Clone, Debug)]
+pub struct Gradients {
+    /// Same layout as the rendered [`GaussianSet`]; every group filled.
+    pub params: GaussianSet,
+    pub background: Vec3,
+    /// Per Gaussian, |dL/d(mean2d)| in NDC units (pixel gradient times half the
+    /// image size), the statistic 3DGS densification accumulates; 0 if culled.
+    pub mean2d_grad_norm: Vec<f32>,
+    /// Whether the Gaussian was visible in this view (counted for densification).
+    pub visible: Vec<bool>,
+}
+
+fn active_degree(gs: &GaussianSet, opts: &RenderOptions) -> u32 {
+    opts.sh_degree.map_or(gs.sh_degree, |d| d.min(gs.sh_degree))
+}
+
+/// Render `gs` from `camera`.
+pub fn render(gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> Render {
+    let pc = ProjectionCamera::new(camera);
+    let deg = active_degree(gs, options);
+    let projected: Vec<_> = (0..gs.len()).into_par_iter().map(|i| project::project_one(gs, i, &pc, deg)).collect();
+    let (w, h) = (camera.width(), camera.height());
+    let bins = raster::bin_tiles(&projected, w, h);
+    let image = raster::rasterize(&projected, &bins, w, h, options.background);
+    Render { width: w, height: h, camera: *camera, options: *options, sh_degree: deg, image, projected, bins }
+}
+
+/// Backward pass: `grad_color` is dL/d(RGB) (row-major, 3 per pixel); optional
+/// dL/d(alpha) and dL/d(accumulated depth) per pixel.
+pub fn backward(
+    gs: &GaussianSet,
+    fwd: &Render,
+    grad_color: &[f32],
+    grad_alpha: Option<&[f32]>,
+    grad_depth: Option<&[f32]>,
+) -> Gradients {
+    let (w, h) = (fwd.width, fwd.height);
+    assert_eq!(grad_color.len(), (3 * w * h) as usize, "colour gradient must match the image");
+    let (proj_grads, bg) = raster::rasterize_backward(
+        &fwd.projected,
+        &fwd.bins,
+        w,
+        h,
+        fwd.options.background,
+        &fwd.image,
+        grad_color,
+        grad_alpha,
+        grad_depth,
+    );
+    let pc = ProjectionCamera::new(&fwd.camera);
+    let raw: Vec<Option<project::RawGrad>> = (0..gs.len())
+        .into_par_iter()
+        .map(|i| {
+            fwd.projected[i]
+                .as_ref()
+                .map(|_| project::project_one_backward(gs, i, &pc, fwd.sh_degree, &proj_grads[i]))
+        })
+        .collect();
+
+    let mut params = GaussianSet::new(gs.sh_degree);
+    let n = gs.len();
+    params.means = vec![0.0; 3 * n];
+    params.log_scales = vec![0.0; 3 * n];
+    params.rotations = vec![0.0; 4 * n];
+    params.opacity_logits = vec![0.0; n];
+    params.sh_dc = vec![0.0; 3 * n];
+    let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
+    params.sh_rest = vec![0.0; rest_w * n];
+    let mut norms = vec![0.0; n];
+    let mut visible = vec![false; n];
+    let ndc_scale = glam::Vec2::new(0.5 * w as f32, 0.5 * h as f32);
+    for (i, g) in raw.into_iter().enumerate() {
+        let Some(g) = g else { continue };
+        visible[i] = true;
+        params.means[3 * i..3 * i + 3].copy_from_slice(&g.mean.to_array());
+        params.log_scales[3 * i..3 * i + 3].copy_from_slice(&g.log_scale.to_array());
+        params.rotations[4 * i..4 * i + 4].copy_from_slice(&g.rotation);
+        params.opacity_logits[i] = g.opacity_logit;
+        params.sh_dc[3 * i..3 * i + 3].copy_from_slice(&g.sh_dc.to_array());
+        params.sh_rest[rest_w * i..rest_w * (i + 1)].copy_from_slice(&g.sh_rest);
+        norms[i] = (proj_grads[i].mean2d * ndc_scale).length();
+    }
+    Gradients { params, background: bg, mean2d_grad_norm: norms, visible }
+}
+
+
+#[cfg(test)]
+mod tests;
