@@ -1,0 +1,108 @@
+//! Dataset folders: the AiM layout, nerfstudio transforms.json, COLMAP sparse models.
+//!
+//! Every loader returns [`crate::Frame`] values in the library's conventions:
+//! OpenCV world-to-camera (Blender/OpenGL camera-to-world matrices are converted
+//! with [`crate::frame::opencv_world_to_camera_from_blender`]), pinhole
+//! [`crate::Intrinsics`] with pixel centres at (i + 0.5, j + 0.5), RGBA images and,
+//! where the dataset has it, metric depth in metres.
+//!
+//! - [`aim`]: `{start,motion,end}/transforms_{train,test}.json` (the AiM paper's data and
+//!   the synthetic benchmark written by `aim synth`).
+//! - [`nerfstudio`]: a nerfstudio `transforms.json` (global or per-frame intrinsics,
+//!   distortion parameters reported, not applied).
+//! - [`colmap`]: COLMAP sparse models (`cameras`, `images`, `points3D`, `.bin` or `.txt`).
+//!
+//! Datasets carry no capture clock: `timestamp_s` is the frame's index over a nominal
+//! 30 fps clock ([`NOMINAL_FPS`]); `motion_time` carries a dataset's normalised `time`.
+
+use std::path::{Path, PathBuf};
+
+use glam::Mat4;
+
+use crate::error::{Error, Result};
+
+pub mod aim;
+pub mod colmap;
+pub mod nerfstudio;
+
+pub use aim::{load_aim, load_aim_transforms, AimDataset, AimPhase, TransformsFile, TransformsFrame};
+pub use colmap::{load_colmap_frames, read_colmap_model, ColmapCamera, ColmapImage, ColmapModel, ColmapPoint};
+pub use nerfstudio::{load_nerfstudio, Distortion, NerfstudioDataset};
+
+/// The clock datasets are given when they have none: frame index / 30 s.
+pub const NOMINAL_FPS: f64 = 30.0;
+
+/// What to read besides poses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LoadOptions {
+    /// Read the depth maps a dataset references (uint16 PNG, millimetres).
+    pub depth: bool,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self { depth: true }
+    }
+}
+
+/// Read an image file as RGBA8 (opaque when it has no alpha).
+pub fn read_rgba(path: &Path) -> Result<image::RgbaImage> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let img =
+        image::load_from_memory(&bytes).map_err(|e| Error::bad_file(path, format!("not a readable image: {e}")))?;
+    Ok(img.into_rgba8())
+}
+
+/// Read a 16-bit depth PNG in millimetres into metres (0 stays 0 = unknown).
+pub fn read_depth_mm(path: &Path, width: u32, height: u32) -> Result<Vec<f32>> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let img =
+        image::load_from_memory(&bytes).map_err(|e| Error::bad_file(path, format!("not a readable image: {e}")))?;
+    let img = match img {
+        image::DynamicImage::ImageLuma16(g) => g,
+        other => {
+            return Err(Error::bad_file(
+                path,
+                format!("depth must be a 16-bit grayscale PNG in millimetres, found {:?}", other.color()),
+            ))
+        }
+    };
+    if img.width() != width || img.height() != height {
+        return Err(Error::bad_file(
+            path,
+            format!("depth is {}x{} but its image is {width}x{height}", img.width(), img.height()),
+        ));
+    }
+    Ok(img.into_raw().into_iter().map(|mm| mm as f32 * 1e-3).collect())
+}
+
+/// Resolve a `file_path` from a transforms file: relative to `dir`, a leading `./`
+/// dropped, and `.png` appended when the path has no extension and does not exist as given.
+pub fn resolve_image_path(dir: &Path, file_path: &str) -> PathBuf {
+    let rel = file_path.strip_prefix("./").unwrap_or(file_path);
+    let p = dir.join(rel);
+    if p.extension().is_none() && !p.exists() {
+        let mut s = p.into_os_string();
+        s.push(".png");
+        PathBuf::from(s)
+    } else {
+        p
+    }
+}
+
+/// A 4x4 matrix given as a list of rows; checks it is finite and rigid.
+pub(crate) fn matrix_from_rows(rows: &[[f32; 4]; 4], path: &Path, what: &str) -> Result<Mat4> {
+    let m = Mat4::from_cols_array_2d(rows).transpose();
+    if !m.is_finite() {
+        return Err(Error::bad_file(path, format!("{what}: transform_matrix has non-finite entries")));
+    }
+    if !crate::frame::is_rigid(&m, 1e-3) {
+        return Err(Error::bad_file(
+            path,
+            format!(
+                "{what}: transform_matrix is not rigid (rotation must be orthonormal with det +1, last row 0 0 0 1)"
+            ),
+        ));
+    }
+    Ok(m)
+}
