@@ -2,11 +2,17 @@
 //! time-stamped frame. It does not depend on the reconstruction code.
 
 pub mod aria;
+pub mod bench;
 pub mod calib;
 pub mod dataset;
+pub mod detect;
 pub mod error;
 pub mod frame;
+pub mod ingest;
 pub mod io;
+pub mod mps;
+pub mod pipeline;
+pub mod source;
 pub mod undistort;
 pub mod vrs;
 

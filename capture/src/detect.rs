@@ -1,0 +1,448 @@
+//! Motion-window detection: when does the hand take hold of the object (hand-in) and
+//! let go (hand-out)? Frames before hand-in are `Scan`, between `Motion`, after `After`.
+//!
+//! Pluggable evidence ([`Evidence`]) gives a per-frame score; a [`WindowTracker`] turns
+//! the scores into events with hysteresis in value (on/off thresholds) and in time
+//! (a run of `min_on` frames starts the window, `min_off` frames end it). Events are
+//! back-dated to the first frame of the deciding run, so the tags are exact at the
+//! cost of a latency of `max(min_on, min_off)` frames.
+//!
+//! Evidence sources: MPS hand tracking (wrist/palm near the object region,
+//! confidence-gated), skin colour in the object's image region, explicit timestamps.
+
+use std::collections::VecDeque;
+
+use glam::{DVec3, Mat4, Vec3, Vec4};
+use serde::Serialize;
+
+use crate::calib::Se3;
+use crate::frame::{Intrinsics, Phase};
+use crate::mps::HandTracking;
+
+/// A change of interaction state.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum MotionEvent {
+    HandIn { frame: usize, timestamp_s: f64 },
+    HandOut { frame: usize, timestamp_s: f64 },
+}
+
+/// Hysteresis settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Hysteresis {
+    /// Evidence at or above this counts as "hand".
+    pub on: f32,
+    /// Evidence below this counts as "no hand" (between: keep the current state).
+    pub off: f32,
+    /// Consecutive "hand" frames needed for hand-in.
+    pub min_on: usize,
+    /// Consecutive "no hand" frames needed for hand-out.
+    pub min_off: usize,
+}
+
+impl Default for Hysteresis {
+    fn default() -> Self {
+        Hysteresis { on: 0.5, off: 0.5, min_on: 3, min_off: 3 }
+    }
+}
+
+/// Turns per-frame evidence into phases and events. Generic over the item it holds
+/// back while a decision is pending (a frame, or just an index).
+#[derive(Debug)]
+pub struct WindowTracker<T> {
+    cfg: Hysteresis,
+    state: Phase,
+    pending: VecDeque<(T, usize, f64)>,
+    pub events: Vec<MotionEvent>,
+}
+
+impl<T> WindowTracker<T> {
+    pub fn new(cfg: Hysteresis) -> Self {
+        WindowTracker { cfg, state: Phase::Scan, pending: VecDeque::new(), events: Vec::new() }
+    }
+
+    pub fn phase(&self) -> Phase {
+        self.state
+    }
+
+    /// Feed one frame; returns the items whose phase is now decided, in order, and any
+    /// event that was decided (also appended to `events`).
+    pub fn push(
+        &mut self,
+        item: T,
+        frame: usize,
+        timestamp_s: f64,
+        evidence: f32,
+    ) -> (Vec<(T, Phase)>, Option<MotionEvent>) {
+        let mut out = Vec::new();
+        let mut event = None;
+        let hand = evidence >= self.cfg.on;
+        let no_hand = evidence < self.cfg.off || !evidence.is_finite();
+        match self.state {
+            Phase::Scan => {
+                if hand {
+                    self.pending.push_back((item, frame, timestamp_s));
+                    if self.pending.len() >= self.cfg.min_on.max(1) {
+                        let (_, f0, t0) = self.pending[0];
+                        let e = MotionEvent::HandIn { frame: f0, timestamp_s: t0 };
+                        self.events.push(e);
+                        event = Some(e);
+                        self.state = Phase::Motion;
+                        out.extend(self.pending.drain(..).map(|(it, _, _)| (it, Phase::Motion)));
+                    }
+                } else {
+                    out.extend(self.pending.drain(..).map(|(it, _, _)| (it, Phase::Scan)));
+                    out.push((item, Phase::Scan));
+                }
+            }
+            Phase::Motion => {
+                if no_hand {
+                    self.pending.push_back((item, frame, timestamp_s));
+                    if self.pending.len() >= self.cfg.min_off.max(1) {
+                        let (_, f0, t0) = self.pending[0];
+                        let e = MotionEvent::HandOut { frame: f0, timestamp_s: t0 };
+                        self.events.push(e);
+                        event = Some(e);
+                        self.state = Phase::After;
+                        out.extend(self.pending.drain(..).map(|(it, _, _)| (it, Phase::After)));
+                    }
+                } else {
+                    out.extend(self.pending.drain(..).map(|(it, _, _)| (it, Phase::Motion)));
+                    out.push((item, Phase::Motion));
+                }
+            }
+            Phase::After => out.push((item, Phase::After)),
+        }
+        (out, event)
+    }
+
+    /// End of stream: release pending items in the current state (an unfinished run
+    /// does not change state).
+    pub fn flush(&mut self) -> Vec<(T, Phase)> {
+        let s = self.state;
+        self.pending.drain(..).map(|(it, _, _)| (it, s)).collect()
+    }
+
+    /// The detected window (hand-in, hand-out) in seconds, if any.
+    pub fn window(&self) -> (Option<f64>, Option<f64>) {
+        window_of(&self.events)
+    }
+}
+
+/// (hand-in, hand-out) times from a list of events.
+pub fn window_of(events: &[MotionEvent]) -> (Option<f64>, Option<f64>) {
+    let hin = events.iter().find_map(|e| match e {
+        MotionEvent::HandIn { timestamp_s, .. } => Some(*timestamp_s),
+        _ => None,
+    });
+    let hout = events.iter().find_map(|e| match e {
+        MotionEvent::HandOut { timestamp_s, .. } => Some(*timestamp_s),
+        _ => None,
+    });
+    (hin, hout)
+}
+
+/// What an evidence source may look at for one frame.
+pub struct FrameView<'a> {
+    pub index: usize,
+    /// Device-clock capture time in ns (the MPS time base).
+    pub timestamp_ns: i64,
+    /// The undistorted RGBA image.
+    pub image: &'a image::RgbaImage,
+    pub intrinsics: &'a Intrinsics,
+    /// OpenCV world-to-camera, if the frame is posed.
+    pub world_to_camera: Option<Mat4>,
+    /// T_world_device at the frame time, if known (MPS trajectory).
+    pub t_world_device: Option<Se3>,
+}
+
+/// A per-frame hand score.
+pub trait Evidence: Send {
+    fn name(&self) -> &'static str;
+    /// Suggested hysteresis for this score.
+    fn hysteresis(&self) -> Hysteresis;
+    fn evidence(&mut self, f: &FrameView<'_>) -> f32;
+}
+
+/// An axis-aligned box in world coordinates where the object is (plus a margin).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, serde::Deserialize)]
+pub struct ObjectRegion {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+}
+
+impl ObjectRegion {
+    pub fn distance(&self, p: DVec3) -> f64 {
+        let lo = DVec3::from_array(self.min);
+        let hi = DVec3::from_array(self.max);
+        let d = (lo - p).max(p - hi).max(DVec3::ZERO);
+        d.length()
+    }
+
+    fn corners(&self) -> [Vec3; 8] {
+        let mut c = [Vec3::ZERO; 8];
+        for (i, v) in c.iter_mut().enumerate() {
+            *v = Vec3::new(
+                if i & 1 == 0 { self.min[0] } else { self.max[0] } as f32,
+                if i & 2 == 0 { self.min[1] } else { self.max[1] } as f32,
+                if i & 4 == 0 { self.min[2] } else { self.max[2] } as f32,
+            );
+        }
+        c
+    }
+
+    /// The region's bounding rectangle in an image (x0, y0, x1, y1), clamped; None when
+    /// the box is entirely behind the camera or off-image.
+    pub fn image_rect(&self, w2c: &Mat4, k: &Intrinsics) -> Option<(u32, u32, u32, u32)> {
+        let mut lo = [f32::INFINITY; 2];
+        let mut hi = [f32::NEG_INFINITY; 2];
+        let mut any = false;
+        for c in self.corners() {
+            let p = *w2c * Vec4::new(c.x, c.y, c.z, 1.0);
+            if p.z <= 1e-3 {
+                // A corner behind the camera: be conservative and take the whole image.
+                return Some((0, 0, k.width, k.height));
+            }
+            let u = k.fx * p.x / p.z + k.cx;
+            let v = k.fy * p.y / p.z + k.cy;
+            lo = [lo[0].min(u), lo[1].min(v)];
+            hi = [hi[0].max(u), hi[1].max(v)];
+            any = true;
+        }
+        if !any {
+            return None;
+        }
+        let x0 = lo[0].floor().clamp(0.0, k.width as f32) as u32;
+        let y0 = lo[1].floor().clamp(0.0, k.height as f32) as u32;
+        let x1 = hi[0].ceil().clamp(0.0, k.width as f32) as u32;
+        let y1 = hi[1].ceil().clamp(0.0, k.height as f32) as u32;
+        (x1 > x0 && y1 > y0).then_some((x0, y0, x1, y1))
+    }
+}
+
+/// MPS hand tracking: 1 when a hand with confidence >= `min_confidence` has its wrist
+/// or palm within `margin` of the object region (or anywhere, without a region), else 0.
+pub struct HandTrackingEvidence {
+    pub hands: HandTracking,
+    pub region: Option<ObjectRegion>,
+    pub margin: f64,
+    pub min_confidence: f64,
+    /// Largest gap between a frame and the nearest hand sample (ns).
+    pub max_gap_ns: i64,
+    pub hysteresis: Hysteresis,
+}
+
+impl HandTrackingEvidence {
+    pub fn new(hands: HandTracking, region: Option<ObjectRegion>) -> Self {
+        HandTrackingEvidence {
+            hands,
+            region,
+            margin: 0.05,
+            min_confidence: 0.5,
+            max_gap_ns: 100_000_000,
+            hysteresis: Hysteresis { on: 0.5, off: 0.5, min_on: 2, min_off: 2 },
+        }
+    }
+}
+
+impl Evidence for HandTrackingEvidence {
+    fn name(&self) -> &'static str {
+        "mps-hands"
+    }
+    fn hysteresis(&self) -> Hysteresis {
+        self.hysteresis
+    }
+    fn evidence(&mut self, f: &FrameView<'_>) -> f32 {
+        let Some(s) = self.hands.nearest(f.timestamp_ns, self.max_gap_ns) else { return 0.0 };
+        for h in s.hands() {
+            if h.confidence < self.min_confidence {
+                continue;
+            }
+            match (&self.region, &f.t_world_device) {
+                (None, _) => return 1.0,
+                (Some(r), Some(twd)) => {
+                    let d = r
+                        .distance(twd.transform_point(h.palm_device))
+                        .min(r.distance(twd.transform_point(h.wrist_device)));
+                    if d <= self.margin {
+                        return 1.0;
+                    }
+                }
+                // A region but no pose: the hand cannot be placed in the world.
+                (Some(_), None) => {}
+            }
+        }
+        0.0
+    }
+}
+
+/// Skin colour in the object's image region: the fraction of pixels in the region whose
+/// YCbCr falls in the usual skin range, divided by `reference_fraction` and capped at 1.
+pub struct SkinEvidence {
+    pub region: Option<ObjectRegion>,
+    /// Skin fraction that counts as a full "hand" score.
+    pub reference_fraction: f32,
+    /// Sample every `stride`-th pixel in x and y.
+    pub stride: u32,
+    pub hysteresis: Hysteresis,
+}
+
+impl Default for SkinEvidence {
+    fn default() -> Self {
+        SkinEvidence {
+            region: None,
+            reference_fraction: 0.02,
+            stride: 2,
+            hysteresis: Hysteresis { on: 1.0, off: 0.5, min_on: 3, min_off: 3 },
+        }
+    }
+}
+
+/// The classic YCbCr skin box (Chai & Ngan, widened a little), with a brightness floor.
+pub fn is_skin(r: u8, g: u8, b: u8) -> bool {
+    let (r, g, b) = (r as f32, g as f32, b as f32);
+    let y = 0.299 * r + 0.587 * g + 0.114 * b;
+    let cb = 128.0 - 0.168_736 * r - 0.331_264 * g + 0.5 * b;
+    let cr = 128.0 + 0.5 * r - 0.418_688 * g - 0.081_312 * b;
+    y > 50.0 && (77.0..=127.0).contains(&cb) && (137.0..=175.0).contains(&cr)
+}
+
+/// Fraction of skin pixels (alpha > 0) in a rectangle, sampling every `stride` pixels.
+pub fn skin_fraction(img: &image::RgbaImage, rect: (u32, u32, u32, u32), stride: u32) -> f32 {
+    let (x0, y0, x1, y1) = rect;
+    let stride = stride.max(1) as usize;
+    let (mut n, mut s) = (0u32, 0u32);
+    for y in (y0..y1.min(img.height())).step_by(stride) {
+        for x in (x0..x1.min(img.width())).step_by(stride) {
+            let p = img.get_pixel(x, y).0;
+            if p[3] == 0 {
+                continue;
+            }
+            n += 1;
+            if is_skin(p[0], p[1], p[2]) {
+                s += 1;
+            }
+        }
+    }
+    if n == 0 {
+        0.0
+    } else {
+        s as f32 / n as f32
+    }
+}
+
+impl Evidence for SkinEvidence {
+    fn name(&self) -> &'static str {
+        "skin"
+    }
+    fn hysteresis(&self) -> Hysteresis {
+        self.hysteresis
+    }
+    fn evidence(&mut self, f: &FrameView<'_>) -> f32 {
+        let (w, h) = (f.image.width(), f.image.height());
+        let rect = match (&self.region, &f.world_to_camera) {
+            (Some(r), Some(w2c)) => match r.image_rect(w2c, f.intrinsics) {
+                Some(rect) => rect,
+                None => return 0.0,
+            },
+            // No region: the central half of the image.
+            _ => (w / 4, h / 4, 3 * w / 4, 3 * h / 4),
+        };
+        (skin_fraction(f.image, rect, self.stride) / self.reference_fraction.max(1e-6)).min(1.0)
+    }
+}
+
+/// Explicit hand-in / hand-out timestamps (seconds on the frames' clock).
+pub struct ExplicitEvidence {
+    pub hand_in_s: f64,
+    pub hand_out_s: f64,
+}
+
+impl Evidence for ExplicitEvidence {
+    fn name(&self) -> &'static str {
+        "explicit"
+    }
+    fn hysteresis(&self) -> Hysteresis {
+        Hysteresis { on: 0.5, off: 0.5, min_on: 1, min_off: 1 }
+    }
+    fn evidence(&mut self, f: &FrameView<'_>) -> f32 {
+        let t = f.timestamp_ns as f64 * 1e-9;
+        if t >= self.hand_in_s && t < self.hand_out_s {
+            1.0
+        } else {
+            0.0
+        }
+    }
+}
+
+/// No detection: every frame is `Scan` (a capture without interaction).
+pub struct NoEvidence;
+
+impl Evidence for NoEvidence {
+    fn name(&self) -> &'static str {
+        "none"
+    }
+    fn hysteresis(&self) -> Hysteresis {
+        Hysteresis { on: f32::INFINITY, off: 0.0, min_on: 1, min_off: 1 }
+    }
+    fn evidence(&mut self, _f: &FrameView<'_>) -> f32 {
+        0.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(evidence: &[f32], h: Hysteresis) -> (Vec<Phase>, Vec<MotionEvent>) {
+        let mut t = WindowTracker::new(h);
+        let mut phases = vec![None; evidence.len()];
+        for (i, &e) in evidence.iter().enumerate() {
+            for (k, p) in t.push(i, i, i as f64, e).0 {
+                phases[k] = Some(p);
+            }
+        }
+        for (k, p) in t.flush() {
+            phases[k] = Some(p);
+        }
+        (phases.into_iter().map(|p| p.unwrap()).collect(), t.events)
+    }
+
+    #[test]
+    fn hysteresis_ignores_blips_and_backdates_events() {
+        let h = Hysteresis { on: 0.5, off: 0.5, min_on: 3, min_off: 3 };
+        let e = [0., 1., 0., 0., 1., 1., 1., 1., 0., 1., 1., 0., 0., 0., 0., 1., 0.];
+        let (p, ev) = run(&e, h);
+        use Phase::*;
+        assert_eq!(
+            p,
+            vec![
+                Scan, Scan, Scan, Scan, Motion, Motion, Motion, Motion, Motion, Motion, Motion, After, After, After,
+                After, After, After
+            ]
+        );
+        assert_eq!(
+            ev,
+            vec![
+                MotionEvent::HandIn { frame: 4, timestamp_s: 4.0 },
+                MotionEvent::HandOut { frame: 11, timestamp_s: 11.0 }
+            ]
+        );
+    }
+
+    #[test]
+    fn no_hand_no_window() {
+        let (p, ev) = run(&[0.0; 20], Hysteresis::default());
+        assert!(ev.is_empty());
+        assert!(p.iter().all(|&x| x == Phase::Scan));
+    }
+
+    #[test]
+    fn skin_test_accepts_skin_and_rejects_grey_and_blue() {
+        assert!(is_skin(224, 172, 140));
+        assert!(is_skin(198, 134, 66) || is_skin(190, 140, 110));
+        assert!(!is_skin(128, 128, 128));
+        assert!(!is_skin(40, 60, 200));
+        assert!(!is_skin(20, 10, 8));
+    }
+}

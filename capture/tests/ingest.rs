@@ -1,0 +1,107 @@
+//! The ingestion thread on the real Aria sample: throughput, policies, shutdown.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use aim_capture::detect::{ExplicitEvidence, MotionEvent};
+use aim_capture::ingest::{Ingest, IngestConfig, Message, Policy};
+use aim_capture::pipeline::{PhaseTagger, Processor};
+use aim_capture::source::{FrameSource, RepeatSource, VrsSource};
+use aim_capture::undistort::UndistortConfig;
+use aim_capture::Phase;
+
+fn vrs() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/reference/aria/gen1/aria_everyday_activities_test_data/recording.vrs")
+}
+
+fn setup(repeat: usize) -> (Box<dyn FrameSource>, Processor) {
+    let src = VrsSource::open(vrs()).unwrap();
+    let cam = src.camera().unwrap();
+    let cfg = UndistortConfig { width: 352, height: 352, focal: 150.0, upright: true };
+    let p = Processor::new(Some(&cam), &cfg, None);
+    (Box::new(RepeatSource::new(Box::new(src), repeat).unwrap()), p)
+}
+
+#[test]
+fn replay_delivers_every_frame_in_order_with_explicit_window() {
+    let (src, p) = setup(3); // 24 frames, 50 ms apart within each repeat
+    let t0 = 86.385246037;
+    // Window covering frames 5..=12 of the 24 (times within the repeated clock).
+    let tagger = PhaseTagger::new(Box::new(ExplicitEvidence { hand_in_s: t0 + 0.24, hand_out_s: t0 + 0.64 }));
+    let ingest = Ingest::spawn(src, p, tagger, IngestConfig { capacity: 2, ..IngestConfig::default() }).unwrap();
+    let mut frames = Vec::new();
+    let mut events = Vec::new();
+    for m in &ingest {
+        match m {
+            Message::Frame(f) => {
+                std::thread::sleep(Duration::from_millis(2)); // a slow consumer
+                frames.push(f)
+            }
+            Message::Event(e) => events.push((frames.len(), e)),
+            Message::Error(e) => panic!("{e}"),
+        }
+    }
+    let (stats, ev) = ingest.stop();
+    assert_eq!(frames.len(), 24);
+    assert_eq!(stats.dropped, 0);
+    assert_eq!(stats.delivered, 24);
+    assert!(frames.windows(2).all(|w| w[0].index + 1 == w[1].index));
+    assert_eq!(frames[0].image.dimensions(), (352, 352));
+    let phases: Vec<Phase> = frames.iter().map(|f| f.phase).collect();
+    let first_motion = phases.iter().position(|&p| p == Phase::Motion).unwrap();
+    let first_after = phases.iter().position(|&p| p == Phase::After).unwrap();
+    assert_eq!((first_motion, first_after), (5, 13), "{phases:?}");
+    // Events arrive right before the first frame of their phase.
+    assert_eq!(events.len(), 2);
+    assert_eq!(events[0].0, 5);
+    assert!(matches!(events[0].1, MotionEvent::HandIn { frame: 5, .. }));
+    assert!(matches!(events[1].1, MotionEvent::HandOut { frame: 13, .. }));
+    assert_eq!(ev.len(), 2);
+    // Upright output: the principal point is swapped, T_device_camera rotated.
+    assert!((frames[0].intrinsics.cx - 176.0).abs() < 1e-3);
+}
+
+#[test]
+fn live_drops_oldest_frames_but_never_events() {
+    let (src, p) = setup(4); // 32 frames
+    let t0 = 86.385246037;
+    let tagger = PhaseTagger::new(Box::new(ExplicitEvidence { hand_in_s: t0 + 0.09, hand_out_s: t0 + 1.0 }));
+    let cfg = IngestConfig { policy: Policy::Live, capacity: 2, ..IngestConfig::default() };
+    let ingest = Ingest::spawn(src, p, tagger, cfg).unwrap();
+    // Consumer arrives late: the producer has to drop.
+    std::thread::sleep(Duration::from_millis(1500));
+    let mut n = 0u64;
+    let mut events = 0;
+    for m in &ingest {
+        match m {
+            Message::Frame(_) => n += 1,
+            Message::Event(_) => events += 1,
+            Message::Error(e) => panic!("{e}"),
+        }
+    }
+    let (stats, _) = ingest.stop();
+    assert_eq!(stats.read, 32);
+    assert!(stats.dropped > 0, "{stats:?}");
+    assert_eq!(n + stats.dropped, 32, "{stats:?}");
+    assert_eq!(events, 2, "both events survive the drops");
+}
+
+#[test]
+fn stop_while_producer_is_blocked_is_clean() {
+    let (src, p) = setup(20);
+    let ingest =
+        Ingest::spawn(src, p, PhaseTagger::none(), IngestConfig { capacity: 1, ..IngestConfig::default() }).unwrap();
+    let first = ingest.recv();
+    assert!(matches!(first, Some(Message::Frame(_))));
+    let t = std::time::Instant::now();
+    let (stats, _) = ingest.stop();
+    assert!(t.elapsed() < Duration::from_secs(5));
+    assert!(stats.read < 160, "stopped early: {stats:?}");
+}
+
+#[test]
+fn missing_file_is_an_error_naming_it() {
+    let e = VrsSource::open("/nonexistent/rec.vrs").err().unwrap();
+    assert!(e.to_string().contains("/nonexistent/rec.vrs"));
+}
