@@ -106,6 +106,20 @@ impl Scalar {
         })
     }
 
+    /// The PLY spelling, for error messages.
+    fn name(self) -> &'static str {
+        match self {
+            Scalar::I8 => "char",
+            Scalar::U8 => "uchar",
+            Scalar::I16 => "short",
+            Scalar::U16 => "ushort",
+            Scalar::I32 => "int",
+            Scalar::U32 => "uint",
+            Scalar::F32 => "float",
+            Scalar::F64 => "double",
+        }
+    }
+
     fn size(self) -> usize {
         match self {
             Scalar::I8 | Scalar::U8 => 1,
@@ -315,7 +329,11 @@ pub fn decode_ply(bytes: &[u8], path: &Path) -> Result<GaussianSet> {
             match p.ty {
                 PropType::Scalar(s) if s.is_float() => {}
                 PropType::Scalar(s) => {
-                    return Err(bad(format!("vertex property '{}' has type {s:?}; expected float", p.name)));
+                    return Err(bad(format!(
+                        "vertex property '{}' has type {}; expected float or double",
+                        p.name,
+                        s.name()
+                    )));
                 }
                 PropType::List { .. } => {
                     return Err(bad(format!("vertex property '{}' is a list; expected float", p.name)));
@@ -558,7 +576,7 @@ mod tests {
         props[0].0 = "int";
         let props: Vec<(&str, &str)> = props.iter().map(|(t, n)| (*t, n.as_str())).collect();
         let msg = message(decode_ply(header_with(&props, 0).as_bytes(), p()).unwrap_err());
-        assert!(msg.contains("'x'") && msg.contains("I32"), "{msg}");
+        assert!(msg.contains("'x'") && msg.contains("type int"), "{msg}");
 
         let mut props: Vec<(&str, String)> = standard_props();
         props.extend((0..5).map(|i| ("float", format!("f_rest_{i}"))));
