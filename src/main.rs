@@ -26,6 +26,9 @@ enum Command {
     Bench(commands::bench::Bench),
     /// Synthetic articulated-object benchmark datasets (AiM layout, exact ground truth).
     Synth(commands::synth::Args),
+    /// Look into recordings: inspect, undistort a frame.
+    #[command(subcommand)]
+    Capture(commands::capture::Capture),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +39,7 @@ fn main() -> ExitCode {
         Command::Render(args) => commands::render::run(args),
         Command::Bench(b) => commands::bench::run(b),
         Command::Synth(args) => commands::synth::run(args),
+        Command::Capture(c) => commands::capture::run(c),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -12,6 +12,7 @@ pub mod ingest;
 pub mod io;
 pub mod mps;
 pub mod pipeline;
+pub mod recording;
 pub mod source;
 pub mod undistort;
 pub mod vrs;

@@ -10,13 +10,49 @@ pub enum Bench {
         /// Timed repetitions per case (the median is reported).
         #[arg(long, default_value_t = 7)]
         repeats: usize,
+        /// Image sizes (square), comma-separated.
+        #[arg(long, value_delimiter = ',', default_values_t = [256u32, 512])]
+        sizes: Vec<u32>,
+        /// Gaussian counts, comma-separated.
+        #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 50_000, 200_000])]
+        counts: Vec<usize>,
+    },
+    /// Ingestion throughput: 1408 x 1408 Aria JPEG decode + undistortion to 704 x 704 + detection.
+    Ingest {
+        /// Print JSON only.
+        #[arg(long)]
+        json: bool,
+        /// Aria VRS recording (default: the sample in ../shared/reference).
+        #[arg(long)]
+        recording: Option<std::path::PathBuf>,
+        /// Frames to push through (the recording's frames are repeated).
+        #[arg(long, default_value_t = 240)]
+        frames: usize,
+        /// Ingestion threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
     },
 }
 
 pub fn run(b: Bench) -> anyhow::Result<()> {
     match b {
-        Bench::Render { json, repeats } => {
-            let rows = aim::bench::render_bench(&[256, 512], &[10_000, 50_000, 200_000], repeats.max(1));
+        Bench::Ingest { json, recording, frames, threads } => {
+            let recording = recording.unwrap_or_else(|| {
+                std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+                    .join("../shared/reference/aria/gen1/aria_everyday_activities_test_data/recording.vrs")
+            });
+            let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2));
+            let r = aim_capture::bench::bench_ingest(&recording, frames, threads)?;
+            let report = serde_json::json!({ "bench": "ingest", "result": r });
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            }
+            return Ok(());
+        }
+        Bench::Render { json, repeats, sizes, counts } => {
+            let rows = aim::bench::render_bench(&sizes, &counts, repeats.max(1));
             let report = serde_json::json!({
                 "bench": "render",
                 "threads": rayon::current_num_threads(),

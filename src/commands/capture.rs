@@ -1,0 +1,155 @@
+//! `aim capture inspect|undistort`: look into a recording (Aria VRS, synthetic Aria-like
+//! recording folder, image folder, AiM dataset). The work is done by `aim_capture`.
+
+use std::path::PathBuf;
+
+use aim_capture::detect::ObjectRegion;
+use aim_capture::recording::{inspect, undistort_frame, DetectorKind, RecordingOptions};
+use aim_capture::undistort::UndistortConfig;
+use anyhow::Context;
+
+#[derive(clap::Subcommand)]
+pub enum Capture {
+    /// Streams, frames, resolution, calibration, timestamps and the detected motion window.
+    Inspect {
+        recording: PathBuf,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Undistort one frame to a linear camera (projectaria_tools'
+    /// get_linear_camera_calibration(W, H, F) + distort_by_calibration).
+    Undistort {
+        recording: PathBuf,
+        #[arg(long, default_value_t = 0)]
+        frame: usize,
+        #[arg(long, default_value_t = 704)]
+        width: u32,
+        #[arg(long, default_value_t = 704)]
+        height: u32,
+        /// Focal length of the linear camera in output pixels.
+        #[arg(long, default_value_t = 300.0)]
+        focal: f64,
+        /// Rotate clockwise by 90 degrees (Aria RGB is mounted sideways).
+        #[arg(long)]
+        upright: bool,
+        /// Vignetting mask PNG at the recorded resolution (e.g. rgb_vignetting_half_reso_mask.png).
+        #[arg(long)]
+        vignetting: Option<PathBuf>,
+        /// Keep the alpha channel (0 where the fisheye does not see) instead of writing RGB.
+        #[arg(long)]
+        alpha: bool,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+#[derive(clap::Args)]
+pub struct Common {
+    /// MPS closed_loop_trajectory.csv (default: looked for beside the recording).
+    #[arg(long)]
+    trajectory: Option<PathBuf>,
+    /// MPS wrist_and_palm_poses.csv or hand_tracking_results.csv (default: beside the recording).
+    #[arg(long)]
+    hands: Option<PathBuf>,
+    /// Object region in world coordinates: x0,y0,z0,x1,y1,z1 (default: object_region.json beside the recording).
+    #[arg(long, value_delimiter = ',', num_args = 6)]
+    region: Option<Vec<f64>>,
+    /// auto | mps | skin | none | HAND_IN_S,HAND_OUT_S
+    #[arg(long, default_value = "auto")]
+    detector: String,
+    /// Output size (square) and focal length of the undistorted frames used for detection.
+    #[arg(long, default_value_t = 352)]
+    size: u32,
+    #[arg(long, default_value_t = 150.0)]
+    focal: f64,
+}
+
+impl Common {
+    fn options(&self) -> anyhow::Result<RecordingOptions> {
+        let detector: DetectorKind = self.detector.parse().map_err(anyhow::Error::msg)?;
+        let region = self.region.as_ref().map(|r| ObjectRegion { min: [r[0], r[1], r[2]], max: [r[3], r[4], r[5]] });
+        Ok(RecordingOptions {
+            undistort: UndistortConfig { width: self.size, height: self.size, focal: self.focal, upright: false },
+            trajectory: self.trajectory.clone(),
+            hands: self.hands.clone(),
+            region,
+            detector,
+            ..RecordingOptions::default()
+        })
+    }
+}
+
+pub fn run(c: Capture) -> anyhow::Result<()> {
+    match c {
+        Capture::Inspect { recording, json, common } => {
+            let report = inspect(&recording, &common.options()?)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+                return Ok(());
+            }
+            println!("recording   {}", report.recording);
+            println!("source      {}", report.source);
+            for s in &report.streams {
+                println!("stream      {:>8}  {:>6} records  {}", s.id, s.records, s.name.as_deref().unwrap_or(""));
+            }
+            println!("frames      {}", report.frame_count);
+            if let (Some(w), Some(h)) = (report.width, report.height) {
+                println!("resolution  {w} x {h}");
+            }
+            match &report.calibration {
+                Some(c) => {
+                    println!("camera      {} {} at {} x {}", c.label, c.model, c.width, c.height);
+                    println!("params      {:?}", c.params);
+                    println!(
+                        "T_Dev_Cam   t = {:?}, q(xyzw) = {:?}",
+                        c.t_device_camera_translation, c.t_device_camera_quaternion_xyzw
+                    );
+                }
+                None => println!("camera      (no fisheye calibration: frames are used as they are)"),
+            }
+            if let (Some(a), Some(b)) = (report.timestamps_ns.first(), report.timestamps_ns.last()) {
+                println!("timestamps  {a} .. {b} ns ({:.3} s)", report.time_span_s.unwrap_or(0.0));
+            }
+            println!("trajectory  {}", report.trajectory.as_deref().unwrap_or("none"));
+            println!("hands       {}", report.hand_tracking.as_deref().unwrap_or("none"));
+            println!("detector    {}", report.detector);
+            match (report.hand_in_s, report.hand_out_s) {
+                (Some(a), Some(b)) => println!("window      hand-in {a:.3} s, hand-out {b:.3} s"),
+                (Some(a), None) => println!("window      hand-in {a:.3} s, no hand-out before the end"),
+                _ => println!("window      none detected"),
+            }
+            println!(
+                "phases      scan {}, motion {}, after {}; skipped: {} corrupt, {} without pose",
+                report.phase_counts[0],
+                report.phase_counts[1],
+                report.phase_counts[2],
+                report.stats.corrupt,
+                report.stats.unposed
+            );
+        }
+        Capture::Undistort { recording, frame, width, height, focal, upright, vignetting, alpha, out } => {
+            let cfg = UndistortConfig { width, height, focal, upright };
+            let (img, cam) = undistort_frame(&recording, frame, &cfg, vignetting.as_deref())?;
+            let dynimg = if alpha {
+                image::DynamicImage::ImageRgba8(img)
+            } else {
+                image::DynamicImage::ImageRgb8(image::DynamicImage::ImageRgba8(img).to_rgb8())
+            };
+            let mut bytes = Vec::new();
+            dynimg.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png).context("encoding PNG")?;
+            aim_capture::io::write_atomic(&out, &bytes)?;
+            eprintln!(
+                "wrote {} ({} x {}, linear f = {focal}, c = {:?}{})",
+                out.display(),
+                cam.width,
+                cam.height,
+                cam.model.principal_point(),
+                if upright { ", upright" } else { "" }
+            );
+        }
+    }
+    Ok(())
+}
