@@ -299,7 +299,14 @@ fn transforms_json(cfg: &SynthConfig, views: &[&PlannedView]) -> TransformsFile 
     let frames = views
         .iter()
         .map(|v| {
-            let c2w = blender_camera_to_world_from_opencv(v.camera.world_to_camera);
+            let c = blender_camera_to_world_from_opencv(v.camera.world_to_camera);
+            // Exact last row (the inverse leaves ~1e-8 residue).
+            let c2w = glam::Mat4::from_cols(
+                c.x_axis.truncate().extend(0.0),
+                c.y_axis.truncate().extend(0.0),
+                c.z_axis.truncate().extend(0.0),
+                c.w_axis.truncate().extend(1.0),
+            );
             let stem = v.stem();
             TransformsFrame {
                 file_path: format!("./{stem}"),

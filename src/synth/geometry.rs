@@ -179,9 +179,7 @@ impl Bvh {
         let mut best = None;
         let mut stack = [0u32; 64];
         let mut sp = 0usize;
-        if self.nodes[0].aabb.hit(ray.origin, inv, tmax).is_none() {
-            return None;
-        }
+        self.nodes[0].aabb.hit(ray.origin, inv, tmax)?;
         let mut node = 0u32;
         loop {
             let n = self.nodes[node as usize];
@@ -399,7 +397,8 @@ impl Shape {
                 let t2 = (b.half - o) * inv;
                 let tnear = t1.min(t2).max_element();
                 let tfar = t1.max(t2).min_element();
-                if !(tnear <= tfar) || tfar <= RAY_EPS {
+                // Written so NaN (a grazing ray) counts as a miss.
+                if tnear.partial_cmp(&tfar).is_none_or(|o| o.is_gt()) || tfar <= RAY_EPS {
                     return None;
                 }
                 let t = if tnear > RAY_EPS { tnear } else { tfar };

@@ -211,7 +211,7 @@ fn shelf_items(x0: f32, x1: f32, y: f32, z: f32, salt: usize) -> Vec<Primitive> 
     for k in 0..n {
         let x = x0 + (k as f32 + 0.5) * (x1 - x0) / n as f32;
         let m = mats[(k + salt) % mats.len()];
-        if (k + salt) % 2 == 0 {
+        if (k + salt).is_multiple_of(2) {
             let h = 0.1 + 0.03 * ((k + salt) % 3) as f32;
             v.push(cyl([x, y, z + 0.5 * h], Vec3::Z, 0.035, h, m));
         } else {
@@ -478,7 +478,7 @@ pub fn table_complex() -> ArticulatedObject {
     body.extend(shelf_items(0.04, 0.44, 0.02, -0.345, 4));
     let top = drawer([-0.475, -0.018], [0.0, 0.3], -0.24, 0.45, walnut(), pale_wood());
     let mut bottom = drawer([-0.475, -0.018], [-0.34, -0.035], -0.24, 0.45, walnut(), pale_wood());
-    bottom.push(bx([-0.4, -0.15, -0.318], [-0.25, 0.05, -0.26], green()));
+    bottom.push(bx([-0.4, -0.15, -0.32], [-0.25, 0.05, -0.26], green()));
     let dl = door([0.018, 0.245], [-0.34, 0.3], -0.24, 0.02, walnut(), 0.21);
     let dr = door([0.251, 0.478], [-0.34, 0.3], -0.24, 0.02, walnut(), 0.29);
     obj(

@@ -92,7 +92,16 @@ pub fn resolve_image_path(dir: &Path, file_path: &str) -> PathBuf {
 
 /// A 4x4 matrix given as a list of rows; checks it is finite and rigid.
 pub(crate) fn matrix_from_rows(rows: &[[f32; 4]; 4], path: &Path, what: &str) -> Result<Mat4> {
-    let m = Mat4::from_cols_array_2d(rows).transpose();
+    let mut m = Mat4::from_cols_array_2d(rows).transpose();
+    // Writers that invert matrices leave ~1e-8 residue in the last row: snap it.
+    if (m.row(3) - glam::Vec4::W).abs().max_element() < 1e-5 {
+        m = Mat4::from_cols(
+            m.x_axis.truncate().extend(0.0),
+            m.y_axis.truncate().extend(0.0),
+            m.z_axis.truncate().extend(0.0),
+            m.w_axis.truncate().extend(1.0),
+        );
+    }
     if !m.is_finite() {
         return Err(Error::bad_file(path, format!("{what}: transform_matrix has non-finite entries")));
     }
