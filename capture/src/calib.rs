@@ -257,7 +257,7 @@ fn solve_theta(c: &[f64; 6], thd: f64) -> Option<f64> {
             th = 0.999 * std::f64::consts::FRAC_PI_2;
         }
         if step.abs() < NEWTON_EPS {
-            return (th.is_finite() && th >= 0.0 && th < std::f64::consts::FRAC_PI_2).then_some(th);
+            return (0.0..std::f64::consts::FRAC_PI_2).contains(&th).then_some(th);
         }
     }
     None

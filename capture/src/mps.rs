@@ -107,7 +107,7 @@ impl Trajectory {
         }
         let j = s.partition_point(|p| (p.t_us as f64) <= t_us);
         let (a, b) = (&s[j - 1], &s[j]);
-        let span = (b.t_us - a.t_us) as f64;
+        let span = b.t_us as f64 - a.t_us as f64;
         let u = if span > 0.0 { (t_us - a.t_us as f64) / span } else { 0.0 };
         Some(a.t_world_device.interpolate(&b.t_world_device, u))
     }
@@ -192,8 +192,8 @@ impl HandTracking {
             .iter()
             .flatten()
             .filter_map(|&k| self.samples.get(k))
-            .min_by_key(|s| (s.t_us - t_us).abs())
-            .filter(|s| (s.t_us - t_us).abs() * 1000 <= max_gap_ns)
+            .min_by_key(|s| s.t_us.abs_diff(t_us))
+            .filter(|s| s.t_us.abs_diff(t_us).saturating_mul(1000) <= max_gap_ns.max(0) as u64)
     }
 }
 

@@ -75,6 +75,9 @@ impl UndistortMap {
         let mut taps = vec![Tap { idx: u32::MAX, fx: 0, fy: 0, gain: 0 }; w * h];
         taps.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
             for (x, t) in row.iter_mut().enumerate() {
+                if sw < 2 || sh < 2 {
+                    continue;
+                }
                 let Some(ray) = linear.unproject(DVec2::new(x as f64, y as f64)) else { continue };
                 let Some(p) = src.project(ray) else { continue };
                 // Bilinear footprint must lie inside the source.

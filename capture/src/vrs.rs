@@ -242,7 +242,7 @@ pub fn parse_index(
     file_size: u64,
 ) -> Result<(Vec<RecordInfo>, usize)> {
     let _ = prelude;
-    if entries.len() % 19 != 0 {
+    if !entries.len().is_multiple_of(19) {
         return Err(Error::bad_file(path, "corrupt VRS index: entry bytes not a multiple of 19"));
     }
     let mut out = Vec::with_capacity(entries.len() / 19);
