@@ -26,7 +26,10 @@ pub mod colmap;
 pub mod nerfstudio;
 
 pub use aim::{load_aim, load_aim_transforms, AimDataset, AimPhase, TransformsFile, TransformsFrame};
-pub use colmap::{load_colmap_frames, read_colmap_model, ColmapCamera, ColmapImage, ColmapModel, ColmapPoint};
+pub use colmap::{
+    load_colmap_frames, read_colmap_model, write_colmap_bin, write_colmap_text, ColmapCamera, ColmapImage, ColmapModel,
+    ColmapPoint,
+};
 pub use nerfstudio::{load_nerfstudio, Distortion, NerfstudioDataset};
 
 /// The clock datasets are given when they have none: frame index / 30 s.
