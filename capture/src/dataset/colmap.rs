@@ -216,7 +216,7 @@ fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>> {
         let mut points2d = Vec::new();
         if let Some((ln2, pl)) = lines.next() {
             let p: Vec<&str> = pl.split_whitespace().collect();
-            if p.len() % 3 != 0 {
+            if !p.len().is_multiple_of(3) {
                 return Err(Error::bad_file(path, format!("line {ln2}: POINTS2D must be triples X Y POINT3D_ID")));
             }
             for c in p.chunks(3) {
@@ -252,7 +252,7 @@ fn read_points_txt(path: &Path) -> Result<Vec<ColmapPoint>> {
     let mut out = Vec::new();
     for (ln, line) in content_lines(&text).filter(|(_, l)| !l.is_empty()) {
         let f: Vec<&str> = line.split_whitespace().collect();
-        if f.len() < 8 || (f.len() - 8) % 2 != 0 {
+        if f.len() < 8 || !(f.len() - 8).is_multiple_of(2) {
             return Err(Error::bad_file(path, format!("line {ln}: expected POINT3D_ID X Y Z R G B ERROR TRACK[]")));
         }
         let id: Vec<u64> = parse_fields(&f[..1], path, ln, "id")?;

@@ -144,9 +144,13 @@ pub fn load_nerfstudio(path: &Path, opts: &LoadOptions) -> Result<NerfstudioData
             let cy = field(fv, &top, &["cy"]).unwrap_or(0.5 * h as f64);
             let intrinsics =
                 Intrinsics { width: w, height: h, fx: fx as f32, fy: fy as f32, cx: cx as f32, cy: cy as f32 };
-            if !(intrinsics.fx > 0.0 && intrinsics.fy > 0.0 && intrinsics.fx.is_finite() && intrinsics.fy.is_finite())
-                || !(intrinsics.cx.is_finite() && intrinsics.cy.is_finite())
-            {
+            let valid = intrinsics.fx > 0.0
+                && intrinsics.fy > 0.0
+                && intrinsics.fx.is_finite()
+                && intrinsics.fy.is_finite()
+                && intrinsics.cx.is_finite()
+                && intrinsics.cy.is_finite();
+            if !valid {
                 return Err(Error::bad_file(&path, format!("{what}: focal lengths must be positive and finite")));
             }
             if let Some(mask) = text(fv, &["mask_path"]) {
