@@ -29,6 +29,8 @@ enum Command {
     /// Look into recordings: inspect, undistort a frame.
     #[command(subcommand)]
     Capture(commands::capture::Capture),
+    /// Write a synthetic Aria-like recording (fisheye frames, MPS trajectory and hand tracking, GT).
+    SynthRecording(commands::synth_recording::Args),
 }
 
 fn main() -> ExitCode {
@@ -40,6 +42,7 @@ fn main() -> ExitCode {
         Command::Bench(b) => commands::bench::run(b),
         Command::Synth(args) => commands::synth::run(args),
         Command::Capture(c) => commands::capture::run(c),
+        Command::SynthRecording(a) => commands::synth_recording::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

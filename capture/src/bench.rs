@@ -65,7 +65,7 @@ pub fn bench_ingest(vrs: &Path, frames: usize, threads: usize) -> Result<IngestB
             und.push(t.elapsed().as_secs_f64() * 1e3);
             let t = Instant::now();
             let (w, h) = out.dimensions();
-            std::hint::black_box(crate::detect::skin_fraction(&out, (w / 4, h / 4, 3 * w / 4, 3 * h / 4), 2));
+            std::hint::black_box(SkinEvidence::default().score(&out, (w / 4, h / 4, 3 * w / 4, 3 * h / 4)));
             det.push(t.elapsed().as_secs_f64() * 1e3);
             Ok(())
         })?;

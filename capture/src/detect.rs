@@ -276,8 +276,9 @@ impl Evidence for HandTrackingEvidence {
     }
 }
 
-/// Skin colour in the object's image region: the fraction of pixels in the region whose
-/// YCbCr falls in the usual skin range, divided by `reference_fraction` and capped at 1.
+/// Skin colour in the object's image region: the fraction of sampled pixels in the
+/// region whose YCbCr falls in the usual skin range *and* that connect to skin outside
+/// the region (see [`connected_skin_fraction`]), divided by `reference_fraction`, capped at 1.
 pub struct SkinEvidence {
     pub region: Option<ObjectRegion>,
     /// Skin fraction that counts as a full "hand" score.
@@ -291,7 +292,7 @@ impl Default for SkinEvidence {
     fn default() -> Self {
         SkinEvidence {
             region: None,
-            reference_fraction: 0.02,
+            reference_fraction: 0.004,
             stride: 2,
             hysteresis: Hysteresis { on: 1.0, off: 0.5, min_on: 3, min_off: 3 },
         }
@@ -331,6 +332,81 @@ pub fn skin_fraction(img: &image::RgbaImage, rect: (u32, u32, u32, u32), stride:
     }
 }
 
+/// Skin evidence that counts only skin connected to skin outside the region: a hand
+/// reaches into the object's region from outside (the arm), while skin-coloured things
+/// that belong to the object (wood, food in a fridge) sit inside it unconnected.
+/// Returns the fraction of sampled region pixels that are such connected skin.
+pub fn connected_skin_fraction(img: &image::RgbaImage, rect: (u32, u32, u32, u32), stride: u32) -> f32 {
+    let stride = stride.max(1);
+    let gw = img.width().div_ceil(stride) as usize;
+    let gh = img.height().div_ceil(stride) as usize;
+    if gw == 0 || gh == 0 {
+        return 0.0;
+    }
+    let (x0, y0, x1, y1) = rect;
+    let inside = |gx: usize, gy: usize| {
+        let (x, y) = (gx as u32 * stride, gy as u32 * stride);
+        x >= x0 && x < x1 && y >= y0 && y < y1
+    };
+    let mut skin = vec![false; gw * gh];
+    for gy in 0..gh {
+        for gx in 0..gw {
+            let p = img.get_pixel(gx as u32 * stride, gy as u32 * stride).0;
+            skin[gy * gw + gx] = p[3] > 0 && is_skin(p[0], p[1], p[2]);
+        }
+    }
+    // Flood fill (4-connected) from skin cells outside the region.
+    let mut seen = vec![false; gw * gh];
+    let mut stack: Vec<usize> = Vec::new();
+    for gy in 0..gh {
+        for gx in 0..gw {
+            let i = gy * gw + gx;
+            if skin[i] && !inside(gx, gy) {
+                seen[i] = true;
+                stack.push(i);
+            }
+        }
+    }
+    let mut n_in = 0usize;
+    while let Some(i) = stack.pop() {
+        let (gx, gy) = (i % gw, i / gw);
+        if inside(gx, gy) {
+            n_in += 1;
+        }
+        let mut visit = |j: usize| {
+            if skin[j] && !seen[j] {
+                seen[j] = true;
+                stack.push(j);
+            }
+        };
+        if gx > 0 {
+            visit(i - 1);
+        }
+        if gx + 1 < gw {
+            visit(i + 1);
+        }
+        if gy > 0 {
+            visit(i - gw);
+        }
+        if gy + 1 < gh {
+            visit(i + gw);
+        }
+    }
+    let n_rect = (0..gh).flat_map(|gy| (0..gw).map(move |gx| (gx, gy))).filter(|&(gx, gy)| inside(gx, gy)).count();
+    if n_rect == 0 {
+        0.0
+    } else {
+        n_in as f32 / n_rect as f32
+    }
+}
+
+impl SkinEvidence {
+    /// The evidence for one image and region rectangle.
+    pub fn score(&self, img: &image::RgbaImage, rect: (u32, u32, u32, u32)) -> f32 {
+        (connected_skin_fraction(img, rect, self.stride) / self.reference_fraction.max(1e-6)).min(1.0)
+    }
+}
+
 impl Evidence for SkinEvidence {
     fn name(&self) -> &'static str {
         "skin"
@@ -348,7 +424,7 @@ impl Evidence for SkinEvidence {
             // No region: the central half of the image.
             _ => (w / 4, h / 4, 3 * w / 4, 3 * h / 4),
         };
-        (skin_fraction(f.image, rect, self.stride) / self.reference_fraction.max(1e-6)).min(1.0)
+        self.score(f.image, rect)
     }
 }
 
@@ -435,6 +511,30 @@ mod tests {
         let (p, ev) = run(&[0.0; 20], Hysteresis::default());
         assert!(ev.is_empty());
         assert!(p.iter().all(|&x| x == Phase::Scan));
+    }
+
+    #[test]
+    fn connected_skin_ignores_islands_inside_the_region() {
+        let skin = image::Rgba([224, 172, 140, 255]);
+        let grey = image::Rgba([120, 120, 120, 255]);
+        let mut img = image::RgbaImage::from_pixel(100, 100, grey);
+        // An island of skin inside the region (e.g. wood, food): ignored.
+        for y in 40..50 {
+            for x in 40..50 {
+                img.put_pixel(x, y, skin);
+            }
+        }
+        let rect = (25, 25, 75, 75);
+        assert_eq!(connected_skin_fraction(&img, rect, 1), 0.0);
+        // An arm from the bottom edge reaching into the region: counted.
+        for y in 50..100 {
+            for x in 45..52 {
+                img.put_pixel(x, y, skin);
+            }
+        }
+        let f = connected_skin_fraction(&img, rect, 1);
+        let want = (7.0 * 25.0 + 100.0) / 2500.0; // arm inside the rect + the island it touches
+        assert!((f - want).abs() < 1e-6, "{f} vs {want}");
     }
 
     #[test]

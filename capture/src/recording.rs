@@ -100,8 +100,15 @@ pub struct Opened {
 
 impl Opened {
     /// Process every frame on the calling thread (rayon) and return them with events.
-    pub fn collect(mut self) -> (Vec<Frame>, Vec<MotionEvent>, IngestStats) {
-        collect_all(self.source.as_mut(), &self.processor, &mut self.tagger)
+    pub fn collect(self) -> (Vec<Frame>, Vec<MotionEvent>, IngestStats) {
+        let (f, e, s, _) = self.collect_with_evidence();
+        (f, e, s)
+    }
+
+    /// As [`Opened::collect`], plus each frame's detector evidence (index, seconds, score).
+    pub fn collect_with_evidence(mut self) -> (Vec<Frame>, Vec<MotionEvent>, IngestStats, Vec<(usize, f64, f32)>) {
+        let (f, e, s) = collect_all(self.source.as_mut(), &self.processor, &mut self.tagger);
+        (f, e, s, std::mem::take(&mut self.tagger.trace))
     }
 }
 
@@ -190,6 +197,8 @@ pub struct InspectReport {
     pub events: Vec<MotionEvent>,
     pub phase_counts: [usize; 3],
     pub stats: IngestStats,
+    /// Detector evidence per processed frame, in frame order.
+    pub evidence: Vec<f32>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -254,7 +263,7 @@ pub fn inspect(path: &Path, opts: &RecordingOptions) -> Result<InspectReport> {
     let trajectory = opened.trajectory_path.as_ref().map(|p| p.display().to_string());
     let hand_tracking = opened.hands_path.as_ref().map(|p| p.display().to_string());
     let has_traj = trajectory.is_some();
-    let (frames, events, stats) = opened.collect();
+    let (frames, events, stats, trace) = opened.collect_with_evidence();
     let timestamps_ns: Vec<i64> = frames.iter().map(|f| (f.timestamp_s * 1e9).round() as i64).collect();
     let time_span_s = match (timestamps_ns.first(), timestamps_ns.last()) {
         (Some(a), Some(b)) => Some((b - a) as f64 * 1e-9),
@@ -294,6 +303,7 @@ pub fn inspect(path: &Path, opts: &RecordingOptions) -> Result<InspectReport> {
         events,
         phase_counts,
         stats,
+        evidence: trace.iter().map(|t| t.2).collect(),
     })
 }
 

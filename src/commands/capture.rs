@@ -121,6 +121,10 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
                 (Some(a), None) => println!("window      hand-in {a:.3} s, no hand-out before the end"),
                 _ => println!("window      none detected"),
             }
+            if !report.evidence.is_empty() {
+                let ev: Vec<String> = report.evidence.iter().map(|e| format!("{e:.2}")).collect();
+                println!("evidence    {}", ev.join(" "));
+            }
             println!(
                 "phases      scan {}, motion {}, after {}; skipped: {} corrupt, {} without pose",
                 report.phase_counts[0],

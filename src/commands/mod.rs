@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod capture;
 pub mod render;
+pub mod synth_recording;
 pub mod synth;
 
 use std::path::Path;

@@ -43,6 +43,7 @@ pub mod dataset;
 pub mod geometry;
 pub mod gt;
 pub mod objects;
+pub mod recording;
 pub mod render;
 pub mod scene;
 pub mod texture;

@@ -1,0 +1,518 @@
+//! A synthetic Aria-like recording for end-to-end tests of the capture stage: a
+//! benchmark object ray-cast through the Aria RGB Fisheye624 model along a head-motion
+//! path, with a simple skin-coloured hand (palm box, finger and forearm cylinders) that
+//! reaches the moving part, moves with it and leaves. Written as MPS-style files:
+//!
+//! ```text
+//! OUT/frames/frame_00000.png ...     raw fisheye RGB frames (sensor orientation, not upright)
+//! OUT/frames/timestamps.csv          file,timestamp_ns (device clock)
+//! OUT/calibration.json               calib_json layout: camera-rgb at native 2880 px,
+//!                                    plus ImageWidth/ImageHeight of the frames
+//! OUT/mps/slam/closed_loop_trajectory.csv      T_world_device at 1 kHz (MPS columns)
+//! OUT/mps/hand_tracking/wrist_and_palm_poses.csv  30 Hz, confidence -1 when no hand
+//! OUT/object_region.json             world box swept by the object (+ nothing else)
+//! OUT/gt/joints.json, trans.json, start|end/part_k.obj   as in the synthetic benchmark
+//! OUT/gt/window.json                 true hand-in / hand-out (ns, s, frame)
+//! ```
+//!
+//! The true hand-in is the moment the hand touches the part (its motion starts); the
+//! true hand-out is the moment it lets go (the motion ends).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use glam::{DQuat, DVec2, DVec3, Mat3, Quat, Vec3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use aim_capture::calib::{CameraCalibration, CameraModel, Se3};
+
+use super::geometry::{Aabb, Ray, Shape};
+use super::gt::write_ground_truth;
+use super::render::Lighting;
+use super::scene::{ArticulatedObject, JointType, Part, PosedScene, Primitive};
+use super::texture::{Material, Pattern};
+use crate::error::{write_atomic, Error, Result};
+
+/// Aria RGB factory calibration from the public sample recording (native 2880 px):
+/// [f, cx, cy, k0..k5, p0, p1, s0..s3].
+pub const ARIA_RGB_PARAMS: [f64; 15] = [
+    1214.025993758243,
+    1469.535869576514,
+    1438.595858396595,
+    0.4049855059199108,
+    -0.4960655170834019,
+    0.2366889743579386,
+    0.9948191490966187,
+    -1.573948083968366,
+    0.6086728193625544,
+    -0.0003672190538065101,
+    -0.0007413905358394097,
+    -0.0005839984838196491,
+    -0.0002193412417918993,
+    0.0001936268547567258,
+    -0.0002042473404798113,
+];
+/// T_Device_Camera of that RGB camera: translation (m) and quaternion (w, x, y, z).
+pub const ARIA_RGB_T_DEVICE_CAMERA: ([f64; 3], [f64; 4]) = (
+    [-0.004554731980229378, -0.01169138077305146, -0.004918788973669208],
+    [0.9433499277148367, 0.3278414140126585, 0.03839318577298367, 0.03371771677908019],
+);
+/// Hand id in ray hits.
+pub const HAND_ID: u32 = 200;
+/// Device clock at the first frame.
+pub const START_NS: i64 = 10_000_000_000;
+
+/// How to record.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RecordingConfig {
+    /// Frame width and height (square, like Aria RGB); the calibration is rescaled from
+    /// 2880 px with an integer factor and a centred crop, as the real sensor modes are.
+    pub resolution: u32,
+    pub fps: f64,
+    /// Seconds of scanning before hand-in.
+    pub scan_s: f64,
+    /// Seconds of motion (hand on the part).
+    pub motion_s: f64,
+    /// Seconds after hand-out.
+    pub after_s: f64,
+    /// Seconds the hand takes to reach the part and to leave it.
+    pub approach_s: f64,
+    /// Render the hand and write it to the hand-tracking CSV.
+    pub hand: bool,
+    /// Camera distance from the object centre, metres (default from the object's view hint).
+    pub distance: Option<f32>,
+}
+
+impl Default for RecordingConfig {
+    fn default() -> Self {
+        RecordingConfig {
+            resolution: 704,
+            fps: 15.0,
+            scan_s: 3.0,
+            motion_s: 2.5,
+            after_s: 2.0,
+            approach_s: 0.4,
+            hand: true,
+            distance: None,
+        }
+    }
+}
+
+/// What was written.
+#[derive(Clone, Debug, Serialize)]
+pub struct RecordingSummary {
+    pub object: String,
+    pub frames: usize,
+    pub resolution: u32,
+    pub fps: f64,
+    pub hand: bool,
+    pub hand_in_ns: i64,
+    pub hand_out_ns: i64,
+    pub hand_in_s: f64,
+    pub hand_out_s: f64,
+    /// First frame at or after hand-in / hand-out.
+    pub hand_in_frame: usize,
+    pub hand_out_frame: usize,
+    pub touched_part: usize,
+}
+
+/// The hand's rigid pose (palm centre, local x towards the forearm) and visibility at time `s`.
+#[derive(Clone, Copy, Debug)]
+struct HandState {
+    pose: glam::Affine3A,
+}
+
+/// The scripted interaction: where the hand touches, how it comes and goes.
+struct Script {
+    t_in: f64,
+    t_out: f64,
+    approach: f64,
+    part: usize,
+    /// Hand pose at contact (t = 0 world).
+    contact: glam::Affine3A,
+    /// Approach and leave directions (unit, world).
+    d_in: Vec3,
+    d_out: Vec3,
+    travel: f32,
+    /// +1: right arm, -1: left arm (the side the hand comes from, seen from the head).
+    side: f32,
+}
+
+fn frame_from_x(x: Vec3) -> Mat3 {
+    let up = if x.z.abs() < 0.9 { Vec3::Z } else { Vec3::X };
+    let y = up.cross(x).normalize();
+    let z = x.cross(y);
+    Mat3::from_cols(x, y, z)
+}
+
+impl Script {
+    fn motion_time(&self, s: f64) -> f32 {
+        ((s - self.t_in) / (self.t_out - self.t_in)).clamp(0.0, 1.0) as f32
+    }
+
+    fn hand(&self, obj: &ArticulatedObject, s: f64) -> Option<HandState> {
+        if s < self.t_in - self.approach || s > self.t_out + self.approach {
+            return None;
+        }
+        let delta = |t: f32| obj.part_transform(self.part, t) * obj.part_transform(self.part, 0.0).inverse();
+        let pose = if s < self.t_in {
+            let k = ((self.t_in - s) / self.approach) as f32; // 1 -> 0
+            glam::Affine3A::from_translation(self.d_in * self.travel * k) * self.contact
+        } else if s <= self.t_out {
+            delta(self.motion_time(s)) * self.contact
+        } else {
+            let k = ((s - self.t_out) / self.approach) as f32; // 0 -> 1
+            glam::Affine3A::from_translation(self.d_out * self.travel * k) * delta(1.0) * self.contact
+        };
+        Some(HandState { pose })
+    }
+}
+
+/// The hand: palm box, four fingers, thumb, forearm (local x towards the elbow).
+fn hand_part() -> Arc<Part> {
+    let skin = skin();
+    let mut prims = vec![Primitive {
+        shape: Shape::oriented_box(Vec3::new(0.01, 0.0, 0.0), Vec3::new(0.045, 0.04, 0.013), Mat3::IDENTITY),
+        material: skin,
+    }];
+    for y in [-0.027f32, -0.009, 0.009, 0.027] {
+        prims.push(Primitive {
+            shape: Shape::cylinder(Vec3::new(-0.065, y, 0.0), Vec3::X, 0.009, 0.06),
+            material: skin,
+        });
+    }
+    prims.push(Primitive {
+        shape: Shape::cylinder(Vec3::new(-0.01, 0.05, 0.0), Vec3::new(-1.0, 1.0, 0.0), 0.01, 0.06),
+        material: skin,
+    });
+    prims.push(Primitive { shape: Shape::cylinder(Vec3::new(0.08, 0.0, 0.0), Vec3::X, 0.028, 0.08), material: skin });
+    Arc::new(Part::new("hand", prims))
+}
+
+fn skin() -> Material {
+    Material::new(Pattern::Plain, Vec3::new(0.87, 0.63, 0.5), Vec3::new(0.8, 0.55, 0.45), 6.0)
+}
+
+/// The arm from the wrist to the shoulder (world frame), so that, as in a real
+/// egocentric view, skin always reaches the hand from the edge of the image.
+fn arm_part(wrist: Vec3, shoulder: Vec3) -> Arc<Part> {
+    let axis = shoulder - wrist;
+    let len = axis.length().max(1e-3);
+    Arc::new(Part::new(
+        "arm",
+        vec![Primitive { shape: Shape::cylinder(0.5 * (wrist + shoulder), axis / len, 0.035, len), material: skin() }],
+    ))
+}
+
+/// World box of the object over its whole motion.
+pub fn swept_bounds(obj: &ArticulatedObject) -> Aabb {
+    let mut b = obj.posed(0.0).bounds();
+    for k in 1..=20 {
+        b = b.union(obj.posed(k as f32 / 20.0).bounds());
+    }
+    b
+}
+
+/// Exit distance from `p` (inside `b`) along unit `d`.
+fn exit_distance(b: &Aabb, p: Vec3, d: Vec3) -> f32 {
+    let mut t = f32::INFINITY;
+    for a in 0..3 {
+        if d[a] > 1e-6 {
+            t = t.min((b.max[a] - p[a]) / d[a]);
+        } else if d[a] < -1e-6 {
+            t = t.min((b.min[a] - p[a]) / d[a]);
+        }
+    }
+    t.max(0.0)
+}
+
+fn plan(obj: &ArticulatedObject, cfg: &RecordingConfig) -> Result<Script> {
+    let joint = obj.joints.first().ok_or_else(|| Error::Config(format!("{} has no joint", obj.name)))?;
+    let part = joint.part;
+    let az = obj.view.front_azimuth_deg.to_radians();
+    let f = Vec3::new(az.cos(), az.sin(), 0.0);
+    let e2 = f.cross(Vec3::Z).normalize();
+    let posed = obj.posed(0.0);
+    let pb = obj.parts[part].bounds().transformed(&obj.part_transform(part, 0.0));
+    let c = pb.center();
+    let ext = pb.extent();
+    let half_w = 0.5 * (ext.x * e2.x.abs() + ext.y * e2.y.abs());
+    let mut best: Option<(f32, Vec3)> = None;
+    for i in 0..9 {
+        for j in 0..9 {
+            let a = -0.9 + 1.8 * i as f32 / 8.0;
+            let b = -0.9 + 1.8 * j as f32 / 8.0;
+            let o = c + e2 * (a * half_w) + Vec3::Z * (b * 0.5 * ext.z) + f * 3.0;
+            let Some(hit) = posed.intersect(&Ray::new(o, -f), f32::INFINITY) else { continue };
+            if hit.part as usize != part {
+                continue;
+            }
+            let p = hit.position;
+            let score = match joint.kind {
+                JointType::Revolute => {
+                    let v = p - joint.origin;
+                    (v - joint.axis * v.dot(joint.axis)).length()
+                }
+                JointType::Prismatic => -(p - c).length(),
+            } - 0.3 * (p.z - c.z).abs();
+            if best.is_none_or(|(s, _)| score > s) {
+                best = Some((score, p));
+            }
+        }
+    }
+    let (_, touch) =
+        best.ok_or_else(|| Error::Config(format!("{}: the moving part is not visible from the front", obj.name)))?;
+    let region = swept_bounds(obj);
+    // Approach from whichever side leaves the swept box soonest (short time near the object
+    // before contact), never from inside the object.
+    let choose = |p: Vec3| -> Vec3 {
+        let mut cands = vec![f, e2, -e2, Vec3::Z];
+        cands.sort_by(|a, b| exit_distance(&region, p, *a).total_cmp(&exit_distance(&region, p, *b)));
+        cands[0]
+    };
+    let d_in = choose(touch);
+    let palm = touch + f * 0.015;
+    let contact = glam::Affine3A::from_mat3_translation(frame_from_x(d_in), palm);
+    let t_in = cfg.scan_s;
+    let t_out = cfg.scan_s + cfg.motion_s;
+    let delta1 = obj.part_transform(part, 1.0) * obj.part_transform(part, 0.0).inverse();
+    let palm1 = delta1.transform_point3(palm);
+    let d_out = choose(palm1);
+    // The arm on the side the hand comes from, as seen by a camera in front of the object.
+    let cam_right = Vec3::Z.cross(f).normalize(); // looking along -f, right = (-f) x z = z x f
+    let side = if d_in.dot(cam_right) < 0.0 { -1.0 } else { 1.0 };
+    Ok(Script { t_in, t_out, approach: cfg.approach_s, part, contact, d_in, d_out, travel: 0.45, side })
+}
+
+/// Head pose (OpenCV camera, upright) at time `s`: an arc in front of the object.
+fn head_camera(obj: &ArticulatedObject, target: Vec3, distance: f32, s: f64, total: f64) -> (Vec3, Mat3) {
+    let az0 = obj.view.front_azimuth_deg.to_radians() as f64;
+    let u = s / total;
+    let az = az0 + 0.55 * (std::f64::consts::PI * (2.0 * u - 0.5)).sin() * 0.8;
+    let el = (18.0f64 + 6.0 * (2.0 * std::f64::consts::PI * 1.7 * u).sin()).to_radians();
+    let (az, el) = (az as f32, el as f32);
+    let bob = 0.01 * (2.0 * std::f64::consts::PI * 1.9 * s).sin() as f32;
+    let eye = target + distance * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()) + Vec3::Z * bob;
+    let look = target + Vec3::new(0.03 * (3.1 * s).sin() as f32, 0.0, 0.03 * (2.3 * s).cos() as f32);
+    let z = (look - eye).normalize();
+    let x = z.cross(Vec3::Z).normalize();
+    let y = z.cross(x);
+    (eye, Mat3::from_cols(x, y, z))
+}
+
+fn to_dquat(m: Mat3) -> DQuat {
+    let q = Quat::from_mat3(&m).normalize();
+    DQuat::from_xyzw(q.x as f64, q.y as f64, q.z as f64, q.w as f64).normalize()
+}
+
+/// Raw Aria RGB camera-to-world at time `s` (sensor mounted 90 degrees from upright) and
+/// the device pose.
+fn poses(obj: &ArticulatedObject, target: Vec3, distance: f32, s: f64, total: f64) -> (Se3, Se3) {
+    let (eye, r_upright) = head_camera(obj, target, distance, s, total);
+    // p_upright = Rz(90) p_raw.
+    let r_raw = r_upright * Mat3::from_rotation_z(std::f32::consts::FRAC_PI_2);
+    let t_world_camera = Se3::new(to_dquat(r_raw), eye.as_dvec3());
+    let (t, q) = ARIA_RGB_T_DEVICE_CAMERA;
+    let t_device_camera = Se3::new(DQuat::from_xyzw(q[1], q[2], q[3], q[0]), DVec3::from_array(t));
+    (t_world_camera, t_world_camera.compose(&t_device_camera.inverse()))
+}
+
+/// The RGB calibration at native resolution, as Aria stores it.
+pub fn aria_rgb_native() -> CameraCalibration {
+    let (t, q) = ARIA_RGB_T_DEVICE_CAMERA;
+    CameraCalibration {
+        label: "camera-rgb".into(),
+        model: CameraModel::Fisheye624(ARIA_RGB_PARAMS),
+        width: 2880,
+        height: 2880,
+        t_device_camera: Se3::new(DQuat::from_xyzw(q[1], q[2], q[3], q[0]), DVec3::from_array(t)),
+        max_theta: 1.4,
+    }
+}
+
+fn background(dir: Vec3, origin: Vec3, floor_z: f32) -> Vec3 {
+    if dir.z < -1e-4 {
+        let t = (floor_z - origin.z) / dir.z;
+        if t > 0.0 {
+            let p = origin + dir * t;
+            let check = ((p.x * 2.0).floor() + (p.y * 2.0).floor()) as i32 & 1;
+            let fade = (-t * 0.15).exp();
+            let c = if check == 0 { 0.42 } else { 0.5 };
+            return Vec3::new(c, c * 1.02, c * 1.08) * (0.6 + 0.4 * fade);
+        }
+    }
+    Vec3::new(0.32, 0.36, 0.42) + Vec3::splat(0.08 * dir.z.clamp(-1.0, 1.0))
+}
+
+fn render_fisheye(
+    scene: &PosedScene,
+    cam: &CameraCalibration,
+    t_world_camera: &Se3,
+    floor_z: f32,
+    lighting: &Lighting,
+) -> image::RgbImage {
+    let (w, h) = (cam.width, cam.height);
+    let rot = t_world_camera.rotation.as_quat();
+    let origin = t_world_camera.translation.as_vec3();
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    buf.par_chunks_mut(w as usize * 3).enumerate().for_each(|(v, row)| {
+        for u in 0..w as usize {
+            let Some(ray_cam) = cam.model.unproject(DVec2::new(u as f64, v as f64)) else { continue };
+            let theta = (ray_cam.x * ray_cam.x + ray_cam.y * ray_cam.y).sqrt().atan();
+            if theta > cam.max_theta {
+                continue;
+            }
+            let dir = (rot * ray_cam.as_vec3()).normalize();
+            let ray = Ray::new(origin, dir);
+            let c = match scene.intersect(&ray, f32::INFINITY) {
+                Some(hit) => lighting.shade(&hit),
+                None => background(dir, origin, floor_z),
+            };
+            for k in 0..3 {
+                row[u * 3 + k] = (c[k].clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+            }
+        }
+    });
+    image::RgbImage::from_raw(w, h, buf).unwrap_or_default()
+}
+
+fn se3_row(t_us: i64, p: &Se3) -> String {
+    let (t, q) = (p.translation, p.rotation);
+    let mut s = format!(
+        "synthetic,{t_us},{},{:.9},{:.9},{:.9},{:.12},{:.12},{:.12},{:.12}",
+        t_us * 1000,
+        t.x,
+        t.y,
+        t.z,
+        q.x,
+        q.y,
+        q.z,
+        q.w
+    );
+    s.push_str(",0,0,0,0,0,0,0,0,-9.81,1,0,0,0,0,0,0,0,1\n");
+    s
+}
+
+/// Write a synthetic Aria-like recording of `obj` into `out`.
+pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Path) -> Result<RecordingSummary> {
+    if !(cfg.fps > 0.0 && cfg.scan_s > cfg.approach_s && cfg.motion_s > 0.0 && cfg.after_s > cfg.approach_s) {
+        return Err(Error::Config("recording needs fps > 0, scan and after longer than the approach".into()));
+    }
+    for d in ["frames", "mps/slam", "mps/hand_tracking", "gt"] {
+        std::fs::create_dir_all(out.join(d)).map_err(|e| Error::io(out.join(d), e))?;
+    }
+    let native = aria_rgb_native();
+    let cam = native.rescaled_to(cfg.resolution, cfg.resolution).map_err(Error::Config)?;
+    let script = plan(obj, cfg)?;
+    let total = cfg.scan_s + cfg.motion_s + cfg.after_s;
+    let region = swept_bounds(obj);
+    let target = obj.posed(0.0).bounds().center();
+    let distance = cfg.distance.unwrap_or(obj.view.distance * 0.6);
+    let floor_z = region.min.z;
+    let hand = hand_part();
+    let lighting = Lighting::default();
+
+    // Frames.
+    let n = (total * cfg.fps).floor() as usize;
+    let mut ts_csv = String::from("file,timestamp_ns\n");
+    for k in 0..n {
+        let s = k as f64 / cfg.fps;
+        let (t_wc, _) = poses(obj, target, distance, s, total);
+        let mut scene = obj.posed(script.motion_time(s));
+        if cfg.hand {
+            if let Some(h) = script.hand(obj, s) {
+                scene.push(hand.clone(), HAND_ID, h.pose);
+                let (eye, r_up) = head_camera(obj, target, distance, s, total);
+                let shoulder = eye + r_up * Vec3::new(0.2 * script.side, 0.3, -0.05);
+                let wrist = h.pose.transform_point3(Vec3::new(0.1, 0.0, 0.0));
+                scene.push(arm_part(wrist, shoulder), HAND_ID, glam::Affine3A::IDENTITY);
+            }
+        }
+        let img = render_fisheye(&scene, &cam, &t_wc, floor_z, &lighting);
+        let name = format!("frame_{k:05}.png");
+        let mut bytes = Vec::new();
+        image::DynamicImage::ImageRgb8(img)
+            .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+            .map_err(|e| Error::Other(format!("encoding {name}: {e}")))?;
+        write_atomic(&out.join("frames").join(&name), &bytes)?;
+        ts_csv.push_str(&format!("{name},{}\n", START_NS + (s * 1e9).round() as i64));
+    }
+    write_atomic(&out.join("frames/timestamps.csv"), ts_csv.as_bytes())?;
+
+    // Calibration (calib_json layout, native resolution) + frame size.
+    let (t, q) = ARIA_RGB_T_DEVICE_CAMERA;
+    let calib = serde_json::json!({
+        "CalibrationSource": "aim synth-recording (Aria RGB factory calibration of the public sample)",
+        "CameraCalibrations": [{
+            "Calibrated": true,
+            "Label": "camera-rgb",
+            "Projection": {"Name": "FisheyeRadTanThinPrism", "Description": "see FisheyeRadTanThinPrism.h", "Params": ARIA_RGB_PARAMS.to_vec()},
+            "T_Device_Camera": {"Translation": t.to_vec(), "UnitQuaternion": [q[0], [q[1], q[2], q[3]]]}
+        }],
+        "ImageWidth": cfg.resolution,
+        "ImageHeight": cfg.resolution,
+    });
+    write_atomic(&out.join("calibration.json"), &serde_json::to_vec_pretty(&calib).unwrap_or_default())?;
+
+    // Trajectory at 1 kHz, a little beyond the frames at both ends.
+    let mut traj = String::from(
+        "graph_uid,tracking_timestamp_us,utc_timestamp_ns,tx_world_device,ty_world_device,tz_world_device,qx_world_device,qy_world_device,qz_world_device,qw_world_device,device_linear_velocity_x_device,device_linear_velocity_y_device,device_linear_velocity_z_device,angular_velocity_x_device,angular_velocity_y_device,angular_velocity_z_device,gravity_x_world,gravity_y_world,gravity_z_world,quality_score,geo_available,tx_ecef_device,ty_ecef_device,tz_ecef_device,qx_ecef_device,qy_ecef_device,qz_ecef_device,qw_ecef_device\n",
+    );
+    let start_us = START_NS / 1000;
+    let steps = ((total + 0.1) * 1000.0) as i64;
+    for k in -50..steps {
+        let s = k as f64 / 1000.0;
+        let (_, t_wd) = poses(obj, target, distance, s, total);
+        traj.push_str(&se3_row(start_us + k * 1000, &t_wd));
+    }
+    write_atomic(&out.join("mps/slam/closed_loop_trajectory.csv"), traj.as_bytes())?;
+
+    // Hand tracking at 30 Hz (right hand; left always missing).
+    let mut ht = String::from(
+        "tracking_timestamp_us,left_tracking_confidence,tx_left_wrist_device,ty_left_wrist_device,tz_left_wrist_device,tx_left_palm_device,ty_left_palm_device,tz_left_palm_device,right_tracking_confidence,tx_right_wrist_device,ty_right_wrist_device,tz_right_wrist_device,tx_right_palm_device,ty_right_palm_device,tz_right_palm_device\n",
+    );
+    let hsteps = (total * 30.0).ceil() as i64;
+    for k in 0..=hsteps {
+        let s = k as f64 / 30.0;
+        let t_us = start_us + (s * 1e6).round() as i64;
+        let hand_now = if cfg.hand { script.hand(obj, s) } else { None };
+        match hand_now {
+            Some(h) => {
+                let (_, t_wd) = poses(obj, target, distance, s, total);
+                let t_dw = t_wd.inverse();
+                let palm = t_dw.transform_point(h.pose.transform_point3(Vec3::ZERO).as_dvec3());
+                let wrist = t_dw.transform_point(h.pose.transform_point3(Vec3::new(0.07, 0.0, 0.0)).as_dvec3());
+                ht.push_str(&format!(
+                    "{t_us},-1,0,0,0,0,0,0,0.97,{:.6},{:.6},{:.6},{:.6},{:.6},{:.6}\n",
+                    wrist.x, wrist.y, wrist.z, palm.x, palm.y, palm.z
+                ));
+            }
+            None => ht.push_str(&format!("{t_us},-1,0,0,0,0,0,0,-1,0,0,0,0,0,0\n")),
+        }
+    }
+    write_atomic(&out.join("mps/hand_tracking/wrist_and_palm_poses.csv"), ht.as_bytes())?;
+
+    let region_json = serde_json::json!({ "min": region.min.to_array(), "max": region.max.to_array() });
+    write_atomic(&out.join("object_region.json"), &serde_json::to_vec_pretty(&region_json).unwrap_or_default())?;
+
+    write_ground_truth(obj, &out.join("gt"))?;
+    let frame_at = |t: f64| ((t * cfg.fps - 1e-9).ceil().max(0.0)) as usize;
+    let summary = RecordingSummary {
+        object: obj.name.clone(),
+        frames: n,
+        resolution: cfg.resolution,
+        fps: cfg.fps,
+        hand: cfg.hand,
+        hand_in_ns: START_NS + (script.t_in * 1e9).round() as i64,
+        hand_out_ns: START_NS + (script.t_out * 1e9).round() as i64,
+        hand_in_s: START_NS as f64 * 1e-9 + script.t_in,
+        hand_out_s: START_NS as f64 * 1e-9 + script.t_out,
+        hand_in_frame: frame_at(script.t_in),
+        hand_out_frame: frame_at(script.t_out),
+        touched_part: script.part,
+    };
+    let window = serde_json::to_vec_pretty(&summary).unwrap_or_default();
+    write_atomic(&out.join("gt/window.json"), &window)?;
+    Ok(summary)
+}
