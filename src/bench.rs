@@ -66,28 +66,55 @@ pub struct RenderBenchRow {
     pub gaussian_pixel_evals: u64,
     /// Evaluations per second, forward pass.
     pub forward_evals_per_s: f64,
+    /// Median time of each stage (project, bin, composite, composite backward, project backward).
+    pub stages_ms: StageTimes,
+}
+
+#[derive(Debug, Default, Serialize)]
+pub struct StageTimes {
+    pub project: f64,
+    pub bin: f64,
+    pub composite: f64,
+    pub composite_backward: f64,
+    pub project_backward: f64,
+}
+
+/// Time each rasterizer stage separately (median of `repeats`).
+fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32], repeats: usize) -> StageTimes {
+    use crate::render::project::{project_one, project_one_backward, ProjectionCamera};
+    use crate::render::raster::{bin_tiles, rasterize, rasterize_backward};
+    use rayon::prelude::*;
+    let pc = ProjectionCamera::new(cam);
+    let (w, h) = (cam.width(), cam.height());
+    let mut t = [Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new()];
+    for _ in 0..repeats {
+        let clock = Instant::now();
+        let proj: Vec<_> = (0..gs.len()).into_par_iter().map(|i| project_one(gs, i, &pc, gs.sh_degree)).collect();
+        t[0].push(clock.elapsed().as_secs_f64() * 1e3);
+        let clock = Instant::now();
+        let bins = bin_tiles(&proj, w, h);
+        t[1].push(clock.elapsed().as_secs_f64() * 1e3);
+        let clock = Instant::now();
+        let out = rasterize(&proj, &bins, w, h, opts.background);
+        t[2].push(clock.elapsed().as_secs_f64() * 1e3);
+        let clock = Instant::now();
+        let (pg, _) = rasterize_backward(&proj, &bins, w, h, opts.background, &out, grad, None, None);
+        t[3].push(clock.elapsed().as_secs_f64() * 1e3);
+        let clock = Instant::now();
+        let raw: Vec<_> = (0..gs.len())
+            .into_par_iter()
+            .map(|i| proj[i].as_ref().map(|_| project_one_backward(gs, i, &pc, gs.sh_degree, &pg[i])))
+            .collect();
+        t[4].push(clock.elapsed().as_secs_f64() * 1e3);
+        std::hint::black_box(raw);
+    }
+    let [a, b, c, d, e] = t.map(median);
+    StageTimes { project: a, bin: b, composite: c, composite_backward: d, project_backward: e }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
-}
-
-/// Count the per-pixel Gaussian evaluations the forward pass performs (ignoring
-/// early termination, which the bench scene rarely reaches).
-fn count_evals(r: &crate::render::Render) -> u64 {
-    let mut total = 0u64;
-    for t in 0..(r.bins.tiles_x * r.bins.tiles_y) as usize {
-        let (tx, ty) = (t as u32 % r.bins.tiles_x, t as u32 / r.bins.tiles_x);
-        let rect = [tx * 16, ty * 16, ((tx + 1) * 16).min(r.width) - 1, ((ty + 1) * 16).min(r.height) - 1];
-        for &g in r.bins.tile(t) {
-            let b = r.projected[g as usize].as_ref().expect("binned").bbox;
-            let w = b[2].min(rect[2]) as i64 - b[0].max(rect[0]) as i64 + 1;
-            let h = b[3].min(rect[3]) as i64 - b[1].max(rect[1]) as i64 + 1;
-            total += (w.max(0) * h.max(0)) as u64;
-        }
-    }
-    total
 }
 
 /// Time forward and forward+backward (median of `repeats`) for each size and count.
@@ -113,7 +140,7 @@ pub fn render_bench(sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<Rend
                 std::hint::black_box((r, g));
             }
             let forward_ms = median(fwd);
-            let evals = count_evals(&warm);
+            let evals = crate::render::raster::pixel_evaluations(&warm.projected, &warm.bins, size, size);
             rows.push(RenderBenchRow {
                 resolution: size,
                 gaussians: n,
@@ -123,6 +150,7 @@ pub fn render_bench(sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<Rend
                 forward_backward_ms: median(both),
                 gaussian_pixel_evals: evals,
                 forward_evals_per_s: evals as f64 / (forward_ms * 1e-3),
+                stages_ms: stage_times(&gs, &cam, &opts, &grad, repeats),
             });
         }
     }

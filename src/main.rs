@@ -31,11 +31,14 @@ enum Command {
     Capture(commands::capture::Capture),
     /// Write a synthetic Aria-like recording (fisheye frames, MPS trajectory and hand tracking, GT).
     SynthRecording(commands::synth_recording::Args),
+    /// Stage I: train the start-state 3DGS from a dataset's scan views.
+    TrainStatic(commands::train_static::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let filter = tracing_subscriber::EnvFilter::try_new(&cli.log).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let filter =
+        tracing_subscriber::EnvFilter::try_new(&cli.log).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
     let result = match cli.command {
         Command::Render(args) => commands::render::run(args),
@@ -43,6 +46,7 @@ fn main() -> ExitCode {
         Command::Synth(args) => commands::synth::run(args),
         Command::Capture(c) => commands::capture::run(c),
         Command::SynthRecording(a) => commands::synth_recording::run(a),
+        Command::TrainStatic(args) => commands::train_static::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

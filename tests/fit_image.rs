@@ -7,7 +7,7 @@ use rand_chacha::ChaCha8Rng;
 
 use aim::camera::{Camera, Intrinsics};
 use aim::render::{backward, render, RenderOptions};
-use aim::splat::{logit, GaussianSet, ParamGroup};
+use aim::splat::{logit, GaussianSet};
 use aim::train::loss::{loss_and_grad, psnr};
 use aim::train::optim::{Adam, LearningRates};
 
@@ -44,12 +44,14 @@ fn fitting_a_target_image_reaches_30_db() {
         gs.push(mean, Vec3::splat((0.03f32).ln()), [1.0, 0.0, 0.0, 0.0], logit(0.5), dc, &[]);
     }
     let mut adam = Adam::new(&gs);
-    let mut lrs = LearningRates::default();
-    lrs.set(ParamGroup::Means, 2e-3);
-    lrs.set(ParamGroup::LogScales, 1e-2);
-    lrs.set(ParamGroup::Rotations, 1e-2);
-    lrs.set(ParamGroup::OpacityLogits, 5e-2);
-    lrs.set(ParamGroup::ShDc, 2e-2);
+    let lrs = LearningRates {
+        means: 2e-3,
+        log_scales: 1e-2,
+        rotations: 1e-2,
+        opacity_logits: 5e-2,
+        sh_dc: 2e-2,
+        sh_rest: 0.0,
+    };
     let opts = RenderOptions::default();
     let mut last_psnr = 0.0;
     for _ in 0..400 {

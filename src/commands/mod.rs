@@ -4,8 +4,9 @@
 pub mod bench;
 pub mod capture;
 pub mod render;
-pub mod synth_recording;
 pub mod synth;
+pub mod synth_recording;
+pub mod train_static;
 
 use std::path::Path;
 

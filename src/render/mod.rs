@@ -119,9 +119,7 @@ pub fn backward(
     let raw: Vec<Option<project::RawGrad>> = (0..gs.len())
         .into_par_iter()
         .map(|i| {
-            fwd.projected[i]
-                .as_ref()
-                .map(|_| project::project_one_backward(gs, i, &pc, fwd.sh_degree, &proj_grads[i]))
+            fwd.projected[i].as_ref().map(|_| project::project_one_backward(gs, i, &pc, fwd.sh_degree, &proj_grads[i]))
         })
         .collect();
 
@@ -150,7 +148,6 @@ pub fn backward(
     }
     Gradients { params, background: bg, mean2d_grad_norm: norms, visible }
 }
-
 
 #[cfg(test)]
 mod tests;

@@ -29,6 +29,11 @@ pub struct Projected {
     /// Inclusive pixel bounding box [x0, x1] x [y0, y1] of every pixel whose
     /// alpha can reach ALPHA_MIN, clipped to the image.
     pub bbox: [u32; 4],
+    /// A lower bound on the Gaussian exponent ("power") below which alpha is
+    /// surely under ALPHA_MIN: ln(ALPHA_MIN / opacity) less a small margin.
+    pub power_cut: f32,
+    /// 3 sigma of the major axis in pixels (the screen size density control prunes on).
+    pub radius: f32,
 }
 
 /// Everything about the camera the projection needs, computed once per render.
@@ -146,7 +151,10 @@ pub fn project_one(gs: &GaussianSet, i: usize, cam: &ProjectionCamera, sh_degree
     ];
 
     let color = eval_color(gs, i, cam.position, sh_degree);
-    Some(Projected { mean2d, conic, depth: t.z, color, opacity, bbox })
+    let power_cut = (ALPHA_MIN / opacity).ln() - 1e-3;
+    let mid = 0.5 * (cov.x_axis.x + cov.y_axis.y);
+    let radius = 3.0 * (mid + (mid * mid - det).max(0.0).sqrt()).sqrt();
+    Some(Projected { mean2d, conic, depth: t.z, color, opacity, bbox, power_cut, radius })
 }
 
 /// View-dependent colour (SH + 0.5, clamped at 0).
@@ -298,7 +306,8 @@ fn quat_matrix_backward(q: Quat, g: Mat3) -> glam::Vec4 {
     // R = [[1-2(yy+zz), 2(xy-wz), 2(xz+wy)], [2(xy+wz), 1-2(xx+zz), 2(yz-wx)], [2(xz-wy), 2(yz+wx), 1-2(xx+yy)]]
     let gw = 2.0 * (-z * gr(0, 1) + y * gr(0, 2) + z * gr(1, 0) - x * gr(1, 2) - y * gr(2, 0) + x * gr(2, 1));
     let gx = 2.0
-        * (y * gr(0, 1) + z * gr(0, 2) + y * gr(1, 0) - 2.0 * x * gr(1, 1) - w * gr(1, 2) + z * gr(2, 0)
+        * (y * gr(0, 1) + z * gr(0, 2) + y * gr(1, 0) - 2.0 * x * gr(1, 1) - w * gr(1, 2)
+            + z * gr(2, 0)
             + w * gr(2, 1)
             - 2.0 * x * gr(2, 2));
     let gy = 2.0

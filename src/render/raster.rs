@@ -5,6 +5,11 @@
 
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
+use wide::{f32x8, CmpEq, CmpGe, CmpLe, CmpLt};
+
+/// SIMD lanes: adjacent pixels of one tile row.
+type Lanes = f32x8;
+const LANES: u32 = 8;
 
 use super::project::{Projected, ProjectedGrad, ALPHA_MIN};
 
@@ -96,78 +101,201 @@ pub struct RasterOutput {
     pub last: Vec<u32>,
 }
 
-struct TileResult {
-    rect: [u32; 4],
-    color: [Vec3; TILE_PIXELS],
-    depth: [f32; TILE_PIXELS],
-    t: [f32; TILE_PIXELS],
-    last: [u32; TILE_PIXELS],
-}
-
-/// The pixel range of Gaussian box `bbox` inside tile rect `r` (exclusive ends); None if empty.
+/// The rows of Gaussian box `bbox` inside tile rect `r` (exclusive end); None if empty.
 #[inline]
-fn clip(bbox: &[u32; 4], r: &[u32; 4]) -> Option<(u32, u32, u32, u32)> {
-    let x0 = bbox[0].max(r[0]);
+fn clip_rows(bbox: &[u32; 4], r: &[u32; 4]) -> Option<(u32, u32)> {
     let y0 = bbox[1].max(r[1]);
-    let x1 = (bbox[2] + 1).min(r[2]);
     let y1 = (bbox[3] + 1).min(r[3]);
-    (x0 < x1 && y0 < y1).then_some((x0, y0, x1, y1))
+    (bbox[0] < r[2] && bbox[2] >= r[0] && y0 < y1).then_some((y0, y1))
 }
 
-/// alpha of Gaussian `p` at pixel (px, py) before the skip test, or None when it is skipped.
+/// The pixels [x0, x1) of row `py` inside tile rect `r` where Gaussian `p` can
+/// reach ALPHA_MIN: the row's chord of the conservative ellipse power >= power_cut.
 #[inline(always)]
-fn alpha_at(p: &Projected, px: u32, py: u32) -> Option<(f32, f32, f32, f32)> {
-    let dx = p.mean2d.x - (px as f32 + 0.5);
+fn row_span(p: &Projected, py: u32, r: &[u32; 4]) -> (u32, u32) {
+    let [a, b, c] = p.conic;
     let dy = p.mean2d.y - (py as f32 + 0.5);
-    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
-    if power > 0.0 {
+    // a dx^2 + 2 b dy dx + (c dy^2 + 2 power_cut) <= 0
+    let half_b = b * dy;
+    let disc = half_b * half_b - a * (c * dy * dy + 2.0 * p.power_cut);
+    if !(disc >= 0.0) {
+        return (0, 0);
+    }
+    let root = disc.sqrt();
+    let (dx_lo, dx_hi) = ((-half_b - root) / a, (-half_b + root) / a);
+    // dx = mean.x - (px + 0.5)
+    // Clamp to the tile first so the integer conversions below are exact.
+    let lo = (p.mean2d.x - dx_hi - 0.5).clamp(r[0] as f32, r[2] as f32);
+    let hi = (p.mean2d.x - dx_lo - 0.5).clamp(r[0] as f32 - 1.0, r[2] as f32 - 1.0);
+    // ceil(lo) and floor(hi) + 1 for non-negative values, without libm calls.
+    let lo_i = lo as u32 + u32::from((lo as u32 as f32) < lo);
+    let hi_i = (hi + 1.0) as u32;
+    if hi_i <= lo_i {
+        (0, 0)
+    } else {
+        (lo_i, hi_i)
+    }
+}
+
+/// How many Gaussian-pixel evaluations a forward pass makes before early
+/// termination (the work measure the benchmark reports).
+pub fn pixel_evaluations(proj: &[Option<Projected>], bins: &TileBins, width: u32, height: u32) -> u64 {
+    (0..bins.tile_count())
+        .into_par_iter()
+        .map(|t| {
+            let rect = bins.tile_rect(t, width, height);
+            let mut n = 0u64;
+            for &gi in bins.tile(t) {
+                let p = proj[gi as usize].as_ref().expect("binned Gaussians are visible");
+                let Some((y0, y1)) = clip_rows(&p.bbox, &rect) else { continue };
+                for py in y0..y1 {
+                    let (x0, x1) = row_span(p, py, &rect);
+                    n += u64::from(x1 - x0);
+                }
+            }
+            n
+        })
+        .sum()
+}
+
+/// Adjacent pixels of one tile row, as SIMD lanes.
+struct LaneGroup {
+    /// Index of the first lane in the tile's 16x16 state arrays.
+    l: usize,
+    /// Lanes inside the Gaussian's row span.
+    in_span: Lanes,
+    dx: Lanes,
+    dy: Lanes,
+    power: Lanes,
+}
+
+const LANE_IDX: Lanes = Lanes::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
+
+/// Visit the lane groups of row `py` that Gaussian `p` can reach in tile `rect`.
+#[inline(always)]
+fn for_each_lanes(p: &Projected, py: u32, rect: &[u32; 4], mut f: impl FnMut(&LaneGroup)) {
+    let (x0, x1) = row_span(p, py, rect);
+    if x0 >= x1 {
+        return;
+    }
+    let (lx0, lx1) = ((x0 - rect[0]) as f32, (x1 - rect[0]) as f32);
+    let row = ((py - rect[1]) * TILE) as usize;
+    let dy = Lanes::splat(p.mean2d.y - (py as f32 + 0.5));
+    let [a, b, c] = p.conic;
+    let mut cx = (x0 - rect[0]) & !(LANES - 1);
+    while rect[0] + cx < x1 {
+        let lane_x = Lanes::splat(cx as f32) + LANE_IDX;
+        let in_span = lane_x.cmp_ge(Lanes::splat(lx0)) & lane_x.cmp_lt(Lanes::splat(lx1));
+        // Same operation order as the scalar definition, so results are bit-identical.
+        let px = Lanes::splat((rect[0] + cx) as f32) + LANE_IDX;
+        let dx = Lanes::splat(p.mean2d.x) - (px + Lanes::splat(0.5));
+        let power =
+            Lanes::splat(-0.5) * (Lanes::splat(a) * dx * dx + Lanes::splat(c) * dy * dy) - Lanes::splat(b) * dx * dy;
+        f(&LaneGroup { l: row + cx as usize, in_span, dx, dy, power });
+        cx += LANES;
+    }
+}
+
+/// The alpha of a Gaussian on a lane group, the raw Gaussian value, and the
+/// lanes that pass the skip rules (inside the span, `extra`, power <= 0,
+/// alpha >= ALPHA_MIN); None when no lane passes (checked before the exp).
+#[inline(always)]
+fn lane_alpha(p: &Projected, lanes: &LaneGroup, extra: Lanes) -> Option<(Lanes, Lanes, Lanes)> {
+    let live = lanes.in_span & extra & lanes.power.cmp_le(Lanes::ZERO);
+    if live.none() {
         return None;
     }
-    let g = power.exp();
-    let a = (p.opacity * g).min(ALPHA_MAX);
-    (a >= ALPHA_MIN).then_some((a, g, dx, dy))
+    let g = lanes.power.exp();
+    let alpha = (Lanes::splat(p.opacity) * g).min(Lanes::splat(ALPHA_MAX));
+    let valid = live & alpha.cmp_ge(Lanes::splat(ALPHA_MIN));
+    (!valid.none()).then_some((alpha, g, valid))
+}
+
+#[inline(always)]
+fn ld(a: &[f32; TILE_PIXELS], l: usize) -> Lanes {
+    let v: [f32; LANES as usize] = a[l..l + LANES as usize].try_into().expect("a full lane group");
+    Lanes::new(v)
+}
+
+#[inline(always)]
+fn st(a: &mut [f32; TILE_PIXELS], l: usize, v: Lanes) {
+    a[l..l + LANES as usize].copy_from_slice(&v.to_array());
+}
+
+#[inline(always)]
+fn add(a: &mut [f32; TILE_PIXELS], l: usize, v: Lanes) {
+    let sum = ld(a, l) + v;
+    st(a, l, sum);
+}
+
+/// One tile's forward state, structure of arrays over its 16x16 pixels.
+struct TileResult {
+    rect: [u32; 4],
+    color: [[f32; TILE_PIXELS]; 3],
+    depth: [f32; TILE_PIXELS],
+    t: [f32; TILE_PIXELS],
+    /// One past the last composited list position (as f32: exact below 2^24).
+    last: [f32; TILE_PIXELS],
 }
 
 /// Forward compositing over all tiles.
-pub fn rasterize(proj: &[Option<Projected>], bins: &TileBins, width: u32, height: u32, background: Vec3) -> RasterOutput {
+pub fn rasterize(
+    proj: &[Option<Projected>],
+    bins: &TileBins,
+    width: u32,
+    height: u32,
+    background: Vec3,
+) -> RasterOutput {
     let results: Vec<TileResult> = (0..bins.tile_count())
         .into_par_iter()
         .map(|t| {
             let rect = bins.tile_rect(t, width, height);
             let mut res = TileResult {
                 rect,
-                color: [Vec3::ZERO; TILE_PIXELS],
+                color: [[0.0; TILE_PIXELS]; 3],
                 depth: [0.0; TILE_PIXELS],
                 t: [1.0; TILE_PIXELS],
-                last: [0; TILE_PIXELS],
+                last: [0.0; TILE_PIXELS],
             };
-            let npix = ((rect[2] - rect[0]) * (rect[3] - rect[1])) as usize;
-            let mut done = [false; TILE_PIXELS];
-            let mut ndone = 0usize;
+            let npix = ((rect[2] - rect[0]) * (rect[3] - rect[1])) as u32;
+            // 1.0 once a pixel's transmittance would drop below TRANSMITTANCE_MIN.
+            let mut done = [0.0f32; TILE_PIXELS];
+            let mut ndone = 0u32;
+            // Pixels still compositing in each row, so finished rows are skipped whole.
+            let mut row_live = [rect[2] - rect[0]; TILE as usize];
             for (k, &gi) in bins.tile(t).iter().enumerate() {
                 let p = proj[gi as usize].as_ref().expect("binned Gaussians are visible");
-                let Some((x0, y0, x1, y1)) = clip(&p.bbox, &rect) else { continue };
+                let Some((y0, y1)) = clip_rows(&p.bbox, &rect) else { continue };
+                let (cr, cg, cb, z) =
+                    (Lanes::splat(p.color.x), Lanes::splat(p.color.y), Lanes::splat(p.color.z), Lanes::splat(p.depth));
+                let k_next = Lanes::splat((k + 1) as f32);
                 for py in y0..y1 {
-                    let row = ((py - rect[1]) * TILE) as usize;
-                    for px in x0..x1 {
-                        let l = row + (px - rect[0]) as usize;
-                        if done[l] {
-                            continue;
-                        }
-                        let Some((a, _, _, _)) = alpha_at(p, px, py) else { continue };
-                        let t_now = res.t[l];
-                        let t_next = t_now * (1.0 - a);
-                        if t_next < TRANSMITTANCE_MIN {
-                            done[l] = true;
-                            ndone += 1;
-                            continue;
-                        }
-                        let w = a * t_now;
-                        res.color[l] += p.color * w;
-                        res.depth[l] += p.depth * w;
-                        res.t[l] = t_next;
-                        res.last[l] = k as u32 + 1;
+                    let row = (py - rect[1]) as usize;
+                    if row_live[row] == 0 {
+                        continue;
                     }
+                    for_each_lanes(p, py, &rect, |lanes| {
+                        let l = lanes.l;
+                        let not_done = ld(&done, l).cmp_eq(Lanes::ZERO);
+                        let Some((alpha, _, valid)) = lane_alpha(p, lanes, not_done) else { return };
+                        let t_now = ld(&res.t, l);
+                        let t_next = t_now * (Lanes::ONE - alpha);
+                        let term = valid & t_next.cmp_lt(Lanes::splat(TRANSMITTANCE_MIN));
+                        let contrib = valid & !term;
+                        let finished = term.move_mask().count_ones();
+                        ndone += finished;
+                        row_live[row] -= finished;
+                        let done_now = ld(&done, l);
+                        st(&mut done, l, term.blend(Lanes::ONE, done_now));
+                        let w = contrib.blend(alpha * t_now, Lanes::ZERO);
+                        for (acc, c) in res.color.iter_mut().zip([cr, cg, cb]) {
+                            add(acc, l, c * w);
+                        }
+                        add(&mut res.depth, l, z * w);
+                        st(&mut res.t, l, contrib.blend(t_next, t_now));
+                        let last_now = ld(&res.last, l);
+                        st(&mut res.last, l, contrib.blend(k_next, last_now));
+                    });
                 }
                 if ndone == npix {
                     break;
@@ -191,12 +319,14 @@ pub fn rasterize(proj: &[Option<Projected>], bins: &TileBins, width: u32, height
             for px in r[0]..r[2] {
                 let l = ((py - r[1]) * TILE + (px - r[0])) as usize;
                 let o = (py * width + px) as usize;
-                let c = res.color[l] + background * res.t[l];
-                out.color[3 * o..3 * o + 3].copy_from_slice(&c.to_array());
-                out.alpha[o] = 1.0 - res.t[l];
+                let tl = res.t[l];
+                for c in 0..3 {
+                    out.color[3 * o + c] = res.color[c][l] + background[c] * tl;
+                }
+                out.alpha[o] = 1.0 - tl;
                 out.depth[o] = res.depth[l];
-                out.final_t[o] = res.t[l];
-                out.last[o] = res.last[l];
+                out.final_t[o] = tl;
+                out.last[o] = res.last[l] as u32;
             }
         }
     }
@@ -232,72 +362,12 @@ pub fn rasterize_backward(
         .into_par_iter()
         .enumerate()
         .map(|(t, grads)| {
-            let rect = bins.tile_rect(t, width, height);
-            let list = bins.tile(t);
-            // Per-pixel state, back to front.
-            let mut t_cur = [0.0f32; TILE_PIXELS];
-            let mut behind_c = [Vec3::ZERO; TILE_PIXELS];
-            let mut behind_d = [0.0f32; TILE_PIXELS];
-            let mut last = [0u32; TILE_PIXELS];
-            let mut gc = [Vec3::ZERO; TILE_PIXELS];
-            let mut ga = [0.0f32; TILE_PIXELS];
-            let mut gd = [0.0f32; TILE_PIXELS];
-            let mut t_final = [0.0f32; TILE_PIXELS];
-            let mut bg_grad = Vec3::ZERO;
-            let mut max_last = 0u32;
-            for py in rect[1]..rect[3] {
-                for px in rect[0]..rect[2] {
-                    let l = ((py - rect[1]) * TILE + (px - rect[0])) as usize;
-                    let o = (py * width + px) as usize;
-                    t_cur[l] = fwd.final_t[o];
-                    t_final[l] = fwd.final_t[o];
-                    behind_c[l] = background * fwd.final_t[o];
-                    last[l] = fwd.last[o];
-                    max_last = max_last.max(last[l]);
-                    gc[l] = Vec3::from_slice(&grad_color[3 * o..3 * o + 3]);
-                    ga[l] = grad_alpha.map_or(0.0, |g| g[o]);
-                    gd[l] = grad_depth.map_or(0.0, |g| g[o]);
-                    bg_grad += gc[l] * fwd.final_t[o];
-                }
+            let g = TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth };
+            if grad_alpha.is_some() || grad_depth.is_some() {
+                backward_tile::<true>(t, grads, proj, bins, width, height, background, fwd, &g)
+            } else {
+                backward_tile::<false>(t, grads, proj, bins, width, height, background, fwd, &g)
             }
-            for k in (0..max_last as usize).rev() {
-                let p = proj[list[k] as usize].as_ref().expect("binned Gaussians are visible");
-                let Some((x0, y0, x1, y1)) = clip(&p.bbox, &rect) else { continue };
-                let mut g = ProjectedGrad::default();
-                for py in y0..y1 {
-                    let row = ((py - rect[1]) * TILE) as usize;
-                    for px in x0..x1 {
-                        let l = row + (px - rect[0]) as usize;
-                        if k as u32 >= last[l] {
-                            continue;
-                        }
-                        let Some((a, gauss, dx, dy)) = alpha_at(p, px, py) else { continue };
-                        let one_minus = 1.0 - a;
-                        let t_before = t_cur[l] / one_minus;
-                        let w = a * t_before;
-                        // d(colour)/d(alpha) = c T - (what lies behind) / (1 - alpha); same for depth.
-                        let dl_da = gc[l].dot(p.color * t_before - behind_c[l] / one_minus)
-                            + gd[l] * (p.depth * t_before - behind_d[l] / one_minus)
-                            + ga[l] * t_final[l] / one_minus;
-                        g.color += gc[l] * w;
-                        g.depth += gd[l] * w;
-                        behind_c[l] += p.color * w;
-                        behind_d[l] += p.depth * w;
-                        t_cur[l] = t_before;
-                        if p.opacity * gauss > ALPHA_MAX {
-                            continue; // clamped: no gradient to opacity or shape
-                        }
-                        g.opacity += dl_da * gauss;
-                        let dl_dpower = dl_da * a;
-                        g.mean2d += dl_dpower * Vec2::new(-p.conic[0] * dx - p.conic[1] * dy, -p.conic[2] * dy - p.conic[1] * dx);
-                        g.conic[0] += dl_dpower * (-0.5 * dx * dx);
-                        g.conic[1] += dl_dpower * (-dx * dy);
-                        g.conic[2] += dl_dpower * (-0.5 * dy * dy);
-                    }
-                }
-                grads[k] = g;
-            }
-            bg_grad
         })
         .collect();
 
@@ -314,4 +384,126 @@ pub fn rasterize_backward(
     }
     let bg = bg_grads.iter().fold(Vec3::ZERO, |a, b| a + *b);
     (per_gaussian, bg)
+}
+
+/// The image-space gradients the backward pass consumes.
+struct TileGrads<'a> {
+    color: &'a [f32],
+    alpha: Option<&'a [f32]>,
+    depth: Option<&'a [f32]>,
+}
+
+/// Backward of one tile, writing its list entries' gradients; returns its share
+/// of the background gradient. `AUX` = alpha or depth gradients are present
+/// (training from colour alone skips that arithmetic).
+#[allow(clippy::too_many_arguments)]
+fn backward_tile<const AUX: bool>(
+    t: usize,
+    grads: &mut [ProjectedGrad],
+    proj: &[Option<Projected>],
+    bins: &TileBins,
+    width: u32,
+    height: u32,
+    background: Vec3,
+    fwd: &RasterOutput,
+    g: &TileGrads,
+) -> Vec3 {
+    let rect = bins.tile_rect(t, width, height);
+    let list = bins.tile(t);
+    // Per-pixel state, back to front: transmittance before the current
+    // Gaussian, what lies behind it (colour and depth), and dL/d(outputs).
+    let mut t_cur = [0.0f32; TILE_PIXELS];
+    let mut behind = [[0.0f32; TILE_PIXELS]; 3];
+    let mut behind_d = [0.0f32; TILE_PIXELS];
+    let mut last = [0.0f32; TILE_PIXELS];
+    let mut gc = [[0.0f32; TILE_PIXELS]; 3];
+    let mut ga = [0.0f32; TILE_PIXELS];
+    let mut gd = [0.0f32; TILE_PIXELS];
+    let mut t_final = [0.0f32; TILE_PIXELS];
+    let mut bg_grad = Vec3::ZERO;
+    let mut max_last = 0u32;
+    // Per row, one past the last list position any of its pixels composited.
+    let mut row_last = [0u32; TILE as usize];
+    for py in rect[1]..rect[3] {
+        for px in rect[0]..rect[2] {
+            let l = ((py - rect[1]) * TILE + (px - rect[0])) as usize;
+            let o = (py * width + px) as usize;
+            let tf = fwd.final_t[o];
+            t_cur[l] = tf;
+            t_final[l] = tf;
+            last[l] = fwd.last[o] as f32;
+            max_last = max_last.max(fwd.last[o]);
+            let row = (py - rect[1]) as usize;
+            row_last[row] = row_last[row].max(fwd.last[o]);
+            for c in 0..3 {
+                behind[c][l] = background[c] * tf;
+                gc[c][l] = g.color[3 * o + c];
+                bg_grad[c] += g.color[3 * o + c] * tf;
+            }
+            ga[l] = g.alpha.map_or(0.0, |a| a[o]);
+            gd[l] = g.depth.map_or(0.0, |d| d[o]);
+        }
+    }
+    for k in (0..max_last as usize).rev() {
+        let p = proj[list[k] as usize].as_ref().expect("binned Gaussians are visible");
+        let Some((y0, y1)) = clip_rows(&p.bbox, &rect) else { continue };
+        let col = [Lanes::splat(p.color.x), Lanes::splat(p.color.y), Lanes::splat(p.color.z)];
+        let z = Lanes::splat(p.depth);
+        let kf = Lanes::splat(k as f32);
+        let [ca, cb, cc] = p.conic.map(Lanes::splat);
+        let mut acc_col = [Lanes::ZERO; 3];
+        let (mut acc_d, mut acc_op) = (Lanes::ZERO, Lanes::ZERO);
+        let (mut acc_mx, mut acc_my) = (Lanes::ZERO, Lanes::ZERO);
+        let (mut acc_a, mut acc_b, mut acc_c) = (Lanes::ZERO, Lanes::ZERO, Lanes::ZERO);
+        for py in y0..y1 {
+            if k as u32 >= row_last[(py - rect[1]) as usize] {
+                continue;
+            }
+            for_each_lanes(p, py, &rect, |lanes| {
+                let l = lanes.l;
+                let composited = kf.cmp_lt(ld(&last, l));
+                let Some((alpha, gauss, valid)) = lane_alpha(p, lanes, composited) else { return };
+                let inv_one_minus = Lanes::ONE / (Lanes::ONE - alpha);
+                let t_before = ld(&t_cur, l) * inv_one_minus;
+                let w = valid.blend(alpha * t_before, Lanes::ZERO);
+                // d(out)/d(alpha) = value * T - (what lies behind) / (1 - alpha), per output.
+                let mut dl_da = if AUX { ld(&ga, l) * ld(&t_final, l) * inv_one_minus } else { Lanes::ZERO };
+                for c in 0..3 {
+                    let g = ld(&gc[c], l);
+                    let b = ld(&behind[c], l);
+                    dl_da += g * (col[c] * t_before - b * inv_one_minus);
+                    acc_col[c] += g * w;
+                    add(&mut behind[c], l, col[c] * w);
+                }
+                if AUX {
+                    let g_d = ld(&gd, l);
+                    let b_d = ld(&behind_d, l);
+                    dl_da += g_d * (z * t_before - b_d * inv_one_minus);
+                    acc_d += g_d * w;
+                    add(&mut behind_d, l, z * w);
+                }
+                let t_now = ld(&t_cur, l);
+                st(&mut t_cur, l, valid.blend(t_before, t_now));
+                // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
+                let free = valid & (Lanes::splat(p.opacity) * gauss).cmp_le(Lanes::splat(ALPHA_MAX));
+                let dl_da = free.blend(dl_da, Lanes::ZERO);
+                acc_op += dl_da * gauss;
+                let dl_dpower = dl_da * alpha;
+                let (dx, dy) = (lanes.dx, lanes.dy);
+                acc_mx += dl_dpower * (-(ca * dx) - cb * dy);
+                acc_my += dl_dpower * (-(cc * dy) - cb * dx);
+                acc_a += dl_dpower * (Lanes::splat(-0.5) * dx * dx);
+                acc_b += dl_dpower * (-(dx * dy));
+                acc_c += dl_dpower * (Lanes::splat(-0.5) * dy * dy);
+            });
+        }
+        grads[k] = ProjectedGrad {
+            mean2d: Vec2::new(acc_mx.reduce_add(), acc_my.reduce_add()),
+            conic: [acc_a.reduce_add(), acc_b.reduce_add(), acc_c.reduce_add()],
+            color: Vec3::new(acc_col[0].reduce_add(), acc_col[1].reduce_add(), acc_col[2].reduce_add()),
+            opacity: acc_op.reduce_add(),
+            depth: acc_d.reduce_add(),
+        };
+    }
+    bg_grad
 }

@@ -41,7 +41,7 @@ impl ParamGroup {
 }
 
 /// A set of 3D Gaussians with raw (pre-activation) parameters.
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GaussianSet {
     /// Highest SH degree stored (0..=3); `sh_rest` holds `(sh_coeffs(deg)-1)*3` per row.
     pub sh_degree: u32,
@@ -114,7 +114,15 @@ impl GaussianSet {
 
     /// Append one Gaussian. `sh_rest` must have `width(ShRest)` entries.
     #[allow(clippy::too_many_arguments)]
-    pub fn push(&mut self, mean: Vec3, log_scale: Vec3, rotation_wxyz: [f32; 4], opacity_logit: f32, sh_dc: [f32; 3], sh_rest: &[f32]) {
+    pub fn push(
+        &mut self,
+        mean: Vec3,
+        log_scale: Vec3,
+        rotation_wxyz: [f32; 4],
+        opacity_logit: f32,
+        sh_dc: [f32; 3],
+        sh_rest: &[f32],
+    ) {
         debug_assert_eq!(sh_rest.len(), self.width(ParamGroup::ShRest));
         self.means.extend_from_slice(&mean.to_array());
         self.log_scales.extend_from_slice(&log_scale.to_array());

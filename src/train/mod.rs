@@ -1,4 +1,9 @@
-//! Training: losses, the optimizer, and (later) density control and the stages.
+//! Training: losses, the optimizer, density control, and the stages.
 
+pub mod config;
+pub mod density;
+pub mod init;
 pub mod loss;
 pub mod optim;
+pub mod static_stage;
+pub mod views;

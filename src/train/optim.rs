@@ -14,7 +14,7 @@ pub const BETA2: f32 = 0.999;
 pub const EPS: f32 = 1e-15;
 
 /// Adam state of one flat parameter buffer; also usable on its own (e.g. network weights).
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct AdamBuffer {
     /// First moment, one per parameter.
     pub m: Vec<f32>,
@@ -118,7 +118,7 @@ impl ExponLr {
 }
 
 /// Adam state for every group of a Gaussian set, row-aligned with the set.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Adam {
     groups: [AdamBuffer; 6],
     widths: [usize; 6],

@@ -1,0 +1,133 @@
+//! `aim train-static DATASET --out RUN [--preset cpu|paper] [--config FILE] [--resume]`
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use anyhow::{bail, Context};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use aim::train::config::StaticConfig;
+use aim::train::static_stage::{run_static, RunOutcome};
+use aim::train::views::views_from_frames;
+use aim_capture::dataset::{load_aim_transforms, LoadOptions};
+use aim_capture::Phase;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Dataset in the AiM layout (trains on start/transforms_train.json, evaluates on start/transforms_test.json).
+    pub dataset: PathBuf,
+    /// Run folder (static.ply, config.toml, metrics.json, test/, checkpoint.bin).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Configuration preset.
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// TOML file overriding preset values (its own `preset` key picks the base).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Continue from RUN/checkpoint.bin.
+    #[arg(long)]
+    pub resume: bool,
+    /// Override the seed.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Override the iteration count.
+    #[arg(long)]
+    pub iterations: Option<u32>,
+}
+
+pub fn resolve_config(args: &Args) -> anyhow::Result<StaticConfig> {
+    let mut cfg = match &args.config {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            StaticConfig::from_toml(&text, p)?
+        }
+        None => StaticConfig::preset(&args.preset)?,
+    };
+    if let Some(s) = args.seed {
+        cfg.seed = s;
+    }
+    if let Some(n) = args.iterations {
+        cfg.iterations = n;
+    }
+    cfg.validate().map_err(|e| anyhow::anyhow!("invalid configuration: {e}"))?;
+    Ok(cfg)
+}
+
+/// Load the start-state views of an AiM-layout dataset, checking they agree in size.
+pub fn load_start_views(
+    dataset: &Path,
+    width: u32,
+) -> anyhow::Result<(Vec<aim::train::views::TrainView>, Vec<aim::train::views::TrainView>)> {
+    let opts = LoadOptions { depth: false };
+    let train_path = dataset.join("start").join("transforms_train.json");
+    let frames = load_aim_transforms(&train_path, Phase::Scan, &opts)?;
+    if frames.is_empty() {
+        bail!("{}: the frame list is empty", train_path.display());
+    }
+    let (w0, h0) = (frames[0].image.width(), frames[0].image.height());
+    if let Some(bad) = frames.iter().find(|f| (f.image.width(), f.image.height()) != (w0, h0)) {
+        bail!(
+            "{}: image is {}x{} but the other training images are {w0}x{h0}",
+            bad.source,
+            bad.image.width(),
+            bad.image.height()
+        );
+    }
+    let test_path = dataset.join("start").join("transforms_test.json");
+    let test_frames =
+        if test_path.exists() { load_aim_transforms(&test_path, Phase::Scan, &opts)? } else { Vec::new() };
+    Ok((views_from_frames(&frames, width)?, views_from_frames(&test_frames, width)?))
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let cfg = resolve_config(&args)?;
+    let (train, test) = load_start_views(&args.dataset, cfg.resolution)?;
+    tracing::info!(
+        train = train.len(),
+        test = test.len(),
+        width = train[0].width(),
+        height = train[0].height(),
+        preset = %cfg.preset,
+        "stage I"
+    );
+    let interrupt = Arc::new(AtomicBool::new(false));
+    {
+        let flag = interrupt.clone();
+        // A second Ctrl-C is not caught again: the handler only raises the flag.
+        let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    }
+    let bar = ProgressBar::new(u64::from(cfg.iterations));
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}")
+            .expect("valid template"),
+    );
+    let mut ema_psnr = 0.0f32;
+    let outcome = run_static(cfg, &train, &test, &args.out, args.resume, &interrupt, |r| {
+        ema_psnr = if ema_psnr == 0.0 { r.psnr } else { 0.9 * ema_psnr + 0.1 * r.psnr };
+        bar.set_position(u64::from(r.iteration));
+        if r.iteration % 10 == 0 {
+            bar.set_message(format!("loss {:.4} psnr {:.2} gaussians {}", r.loss, ema_psnr, r.gaussians));
+        }
+    })?;
+    bar.finish_and_clear();
+    match outcome {
+        RunOutcome::Finished(m) => {
+            println!(
+                "stage I done: {} iterations, {} Gaussians, test PSNR {:.2} dB, SSIM {:.4}, {:.1} s, peak RSS {:.0} MiB",
+                m.iterations,
+                m.gaussians,
+                m.mean_psnr,
+                m.mean_ssim,
+                m.wall_time_s,
+                m.peak_rss_mib.unwrap_or(f64::NAN)
+            );
+            println!("wrote {}", args.out.join("static.ply").display());
+            Ok(())
+        }
+        RunOutcome::Interrupted(it) => {
+            bail!("interrupted at iteration {it}; checkpoint written, continue with --resume")
+        }
+    }
+}

@@ -1,0 +1,276 @@
+//! Stage I configuration: every value of the schedule, density control and
+//! initialisation, read from TOML with unknown keys rejected, plus the presets.
+//!
+//! Presets (docs/training.md says what each costs):
+//! - `paper`: the official AiM code's stage I (20k iterations at full resolution,
+//!   100k random initial points, densify every 100 from 500 to 20k at 3e-4).
+//! - `cpu`: chosen by measurement to reach >= 30 dB on the synthetic benchmark in
+//!   a few minutes on two cores (lower resolution, fewer iterations and points, a
+//!   cap on the Gaussian count).
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+
+/// Learning rates (3DGS names; means are multiplied by the scene extent).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LrConfig {
+    pub means_init: f32,
+    pub means_final: f32,
+    pub means_delay_mult: f32,
+    pub sh_dc: f32,
+    /// SH rest coefficients (3DGS: sh_dc / 20).
+    pub sh_rest: f32,
+    pub opacity: f32,
+    pub scale: f32,
+    pub rotation: f32,
+}
+
+/// Adaptive density control (3DGS).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DensityConfig {
+    pub from_iter: u32,
+    pub until_iter: u32,
+    pub interval: u32,
+    /// Threshold on the mean NDC screen-space gradient norm.
+    pub grad_threshold: f32,
+    /// Gaussians larger than this fraction of the scene extent are split, smaller cloned.
+    pub percent_dense: f32,
+    pub opacity_reset_interval: u32,
+    pub min_opacity: f32,
+    /// Prune Gaussians whose screen radius exceeds this many pixels (after the first opacity reset).
+    pub max_screen_size: f32,
+    /// Prune Gaussians larger than this fraction of the scene extent (after the first opacity reset).
+    pub max_world_size: f32,
+    /// Stop densifying once this many Gaussians exist (0 = no cap).
+    pub max_gaussians: usize,
+}
+
+/// How the start-state Gaussians are created.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InitConfig {
+    /// Random points when no point cloud is given.
+    pub points: usize,
+    pub box_min: [f32; 3],
+    pub box_max: [f32; 3],
+    pub opacity: f32,
+}
+
+/// Stage I: the start-state 3DGS.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StaticConfig {
+    pub preset: String,
+    pub iterations: u32,
+    /// Train (and evaluate) at this image width, keeping the aspect; 0 = as recorded.
+    pub resolution: u32,
+    pub seed: u64,
+    pub sh_degree: u32,
+    /// Raise the active SH degree by one every this many iterations.
+    pub sh_increase_interval: u32,
+    pub lambda_dssim: f32,
+    /// Composite RGBA targets over a random colour each iteration (official --random_bg_color).
+    pub random_background: bool,
+    /// Background for evaluation renders and targets.
+    pub eval_background: [f32; 3],
+    /// Write a checkpoint every this many iterations (0 = only at the end and on Ctrl-C).
+    pub checkpoint_interval: u32,
+    pub lr: LrConfig,
+    pub density: DensityConfig,
+    pub init: InitConfig,
+}
+
+impl StaticConfig {
+    /// The official AiM code's stage I.
+    pub fn paper() -> Self {
+        Self {
+            preset: "paper".into(),
+            iterations: 20_000,
+            resolution: 0,
+            seed: 0,
+            sh_degree: 0,
+            sh_increase_interval: 1000,
+            lambda_dssim: 0.2,
+            random_background: true,
+            eval_background: [1.0, 1.0, 1.0],
+            checkpoint_interval: 2000,
+            lr: LrConfig {
+                means_init: 1.6e-4,
+                means_final: 1.6e-6,
+                means_delay_mult: 0.01,
+                sh_dc: 0.0025,
+                sh_rest: 0.0025 / 20.0,
+                opacity: 0.05,
+                scale: 0.005,
+                rotation: 0.001,
+            },
+            density: DensityConfig {
+                from_iter: 500,
+                until_iter: 20_000,
+                interval: 100,
+                grad_threshold: 3e-4,
+                percent_dense: 0.01,
+                opacity_reset_interval: 3000,
+                min_opacity: 0.005,
+                max_screen_size: 20.0,
+                max_world_size: 0.1,
+                max_gaussians: 0,
+            },
+            init: InitConfig { points: 100_000, box_min: [-0.5; 3], box_max: [0.5; 3], opacity: 0.1 },
+        }
+    }
+
+    /// Practical on two CPU cores (see docs/training.md for the measurements behind it).
+    pub fn cpu() -> Self {
+        let mut c = Self::paper();
+        c.preset = "cpu".into();
+        c.iterations = 3000;
+        c.resolution = 128;
+        c.checkpoint_interval = 500;
+        c.density.from_iter = 300;
+        c.density.until_iter = 2400;
+        c.density.interval = 100;
+        c.density.grad_threshold = 2e-4;
+        c.density.opacity_reset_interval = 1500;
+        c.density.max_gaussians = 60_000;
+        c.lr.means_init = 4e-4;
+        c.init.points = 10_000;
+        c
+    }
+
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "paper" => Ok(Self::paper()),
+            "cpu" => Ok(Self::cpu()),
+            other => Err(Error::Config(format!("unknown preset '{other}' (valid: paper, cpu)"))),
+        }
+    }
+
+    /// Parse TOML over a preset: the file names its `preset` (default cpu) and
+    /// overrides any key; unknown keys are rejected with their name.
+    pub fn from_toml(text: &str, path: &std::path::Path) -> Result<Self> {
+        let value: toml::Value = toml::from_str(text).map_err(|e| Error::bad_file(path, e.to_string()))?;
+        let preset = value.get("preset").and_then(|v| v.as_str()).unwrap_or("cpu");
+        let mut base = toml::Value::try_from(Self::preset(preset)?).map_err(|e| Error::Other(e.to_string()))?;
+        merge(&mut base, value);
+        let cfg: Self = base.try_into().map_err(|e: toml::de::Error| Error::bad_file(path, e.to_string()))?;
+        cfg.validate().map_err(|e| Error::bad_file(path, e))?;
+        Ok(cfg)
+    }
+
+    /// Range checks, naming the key.
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        let positive = [
+            ("lr.means_init", self.lr.means_init),
+            ("lr.sh_dc", self.lr.sh_dc),
+            ("lr.opacity", self.lr.opacity),
+            ("lr.scale", self.lr.scale),
+            ("lr.rotation", self.lr.rotation),
+            ("density.grad_threshold", self.density.grad_threshold),
+            ("density.percent_dense", self.density.percent_dense),
+        ];
+        for (k, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{k} must be a positive number, got {v}"));
+            }
+        }
+        for (k, v) in [("lr.means_final", self.lr.means_final), ("lr.sh_rest", self.lr.sh_rest)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{k} must be >= 0, got {v}"));
+            }
+        }
+        if self.iterations == 0 {
+            return Err("iterations must be at least 1".into());
+        }
+        if self.sh_degree > 3 {
+            return Err(format!("sh_degree must be 0..=3, got {}", self.sh_degree));
+        }
+        if !(0.0..=1.0).contains(&self.lambda_dssim) {
+            return Err(format!("lambda_dssim must be in [0, 1], got {}", self.lambda_dssim));
+        }
+        if !(self.init.opacity > 0.0 && self.init.opacity < 1.0) {
+            return Err(format!("init.opacity must be in (0, 1), got {}", self.init.opacity));
+        }
+        if !(0.0..1.0).contains(&self.density.min_opacity) {
+            return Err(format!("density.min_opacity must be in [0, 1), got {}", self.density.min_opacity));
+        }
+        if self.density.interval == 0 {
+            return Err("density.interval must be at least 1".into());
+        }
+        if self.init.points == 0 {
+            return Err("init.points must be at least 1".into());
+        }
+        for i in 0..3 {
+            if !(self.init.box_min[i] < self.init.box_max[i]) {
+                return Err(format!("init.box_min[{i}] must be below init.box_max[{i}]"));
+            }
+        }
+        if self.eval_background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            return Err("eval_background components must be in [0, 1]".into());
+        }
+        Ok(())
+    }
+}
+
+/// Overlay `over` onto `base` table by table (keys absent from `base` stay, so
+/// deserialisation can name them as unknown).
+fn merge(base: &mut toml::Value, over: toml::Value) {
+    match (base, over) {
+        (toml::Value::Table(b), toml::Value::Table(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(slot) => merge(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    #[test]
+    fn toml_overrides_a_preset() {
+        let c = StaticConfig::from_toml(
+            "preset = \"paper\"\niterations = 7\n[density]\nmin_opacity = 0.01\n",
+            Path::new("x.toml"),
+        )
+        .expect("valid");
+        assert_eq!(c.iterations, 7);
+        assert_eq!(c.density.min_opacity, 0.01);
+        assert_eq!(c.density.interval, 100);
+        assert_eq!(c.preset, "paper");
+    }
+
+    #[test]
+    fn unknown_key_is_rejected_by_name() {
+        let e =
+            StaticConfig::from_toml("[density]\nmin_opacty = 0.01\n", Path::new("cfg.toml")).unwrap_err().to_string();
+        assert!(e.contains("min_opacty") && e.contains("cfg.toml"), "{e}");
+    }
+
+    #[test]
+    fn out_of_range_value_is_rejected_by_name() {
+        let e = StaticConfig::from_toml("[lr]\nscale = -1.0\n", Path::new("cfg.toml")).unwrap_err().to_string();
+        assert!(e.contains("lr.scale"), "{e}");
+        let e = StaticConfig::from_toml("sh_degree = 4\n", Path::new("cfg.toml")).unwrap_err().to_string();
+        assert!(e.contains("sh_degree"), "{e}");
+    }
+
+    #[test]
+    fn presets_round_trip_through_toml() {
+        for p in [StaticConfig::paper(), StaticConfig::cpu()] {
+            let text = toml::to_string(&p).expect("serialises");
+            assert_eq!(StaticConfig::from_toml(&text, Path::new("p.toml")).expect("parses"), p);
+        }
+    }
+}

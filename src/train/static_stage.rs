@@ -1,0 +1,374 @@
+//! Stage I: the start-state 3DGS, trained on the scan views (paper Sec. 3,
+//! Appendix A). [`GaussianTrainer`] is the reusable loop (one step = pick a view,
+//! render over a random background, L1 + D-SSIM, backward, density control,
+//! Adam); [`run_static`] adds the run folder: checkpoints, resume, evaluation
+//! and outputs.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use glam::Vec3;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{write_atomic, Error, Result};
+use crate::render::{backward, render, RenderOptions};
+use crate::splat::GaussianSet;
+use crate::train::config::StaticConfig;
+use crate::train::density::{densify_and_prune, reset_opacity, DensifyParams, DensifyReport, DensityStats};
+use crate::train::init::{gaussians_from_points, random_points};
+use crate::train::loss::{loss_and_grad, psnr, ssim};
+use crate::train::optim::{Adam, ExponLr, LearningRates};
+use crate::train::views::{camera_extent, TrainView};
+
+/// Opacity cap applied by the periodic reset (3DGS value).
+const OPACITY_RESET_VALUE: f32 = 0.01;
+
+/// What one iteration did.
+#[derive(Clone, Debug, Default)]
+pub struct StepReport {
+    pub iteration: u32,
+    pub loss: f32,
+    pub psnr: f32,
+    pub gaussians: usize,
+    pub densified: Option<DensifyReport>,
+}
+
+/// A Gaussian set with its optimizer and density statistics: everything that
+/// must be saved to resume training exactly.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct GaussianTrainer {
+    pub config: StaticConfig,
+    pub gaussians: GaussianSet,
+    pub adam: Adam,
+    pub stats: DensityStats,
+    /// Iterations completed.
+    pub iteration: u32,
+    /// Scene extent (world units) from the training cameras.
+    pub extent: f32,
+}
+
+/// A seeded generator for one purpose at one iteration, so every random choice
+/// depends only on (seed, iteration): a resumed run repeats an uninterrupted one.
+fn rng_for(seed: u64, stream: u64, iteration: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(stream);
+    rng.set_word_pos(u128::from(iteration) << 20);
+    rng
+}
+
+const STREAM_VIEWS: u64 = 1;
+const STREAM_BACKGROUND: u64 = 2;
+const STREAM_DENSIFY: u64 = 3;
+
+impl GaussianTrainer {
+    /// Start from `points` (or random points in the configured box).
+    pub fn new(
+        config: StaticConfig,
+        views: &[TrainView],
+        points: Option<(Vec<Vec3>, Option<Vec<Vec3>>)>,
+    ) -> Result<Self> {
+        if views.is_empty() {
+            return Err(Error::Config("no training views".into()));
+        }
+        config.validate().map_err(Error::Config)?;
+        let (pts, colors) = match points {
+            Some(p) => p,
+            None => (
+                random_points(
+                    config.init.points,
+                    Vec3::from(config.init.box_min),
+                    Vec3::from(config.init.box_max),
+                    config.seed,
+                ),
+                None,
+            ),
+        };
+        let gaussians = gaussians_from_points(&pts, colors.as_deref(), config.init.opacity, config.sh_degree);
+        let adam = Adam::new(&gaussians);
+        let stats = DensityStats::new(gaussians.len());
+        Ok(Self { extent: camera_extent(views), config, gaussians, adam, stats, iteration: 0 })
+    }
+
+    /// The view trained at iteration `it`: a fresh permutation of all views per epoch.
+    fn view_index(&self, n_views: usize, it: u32) -> usize {
+        let epoch = it as usize / n_views;
+        let mut order: Vec<usize> = (0..n_views).collect();
+        order.shuffle(&mut rng_for(self.config.seed, STREAM_VIEWS, epoch as u64));
+        order[it as usize % n_views]
+    }
+
+    fn learning_rates(&self, it: u32) -> LearningRates {
+        let c = &self.config.lr;
+        let means = ExponLr {
+            lr_init: c.means_init * self.extent,
+            lr_final: c.means_final * self.extent,
+            delay_steps: 0,
+            delay_mult: c.means_delay_mult,
+            max_steps: u64::from(self.config.iterations),
+        };
+        LearningRates {
+            means: means.at(u64::from(it)),
+            log_scales: c.scale,
+            rotations: c.rotation,
+            opacity_logits: c.opacity,
+            sh_dc: c.sh_dc,
+            sh_rest: c.sh_rest,
+        }
+    }
+
+    /// SH degree in use at iteration `it` (raised every `sh_increase_interval`).
+    pub fn active_sh_degree(&self, it: u32) -> u32 {
+        let interval = self.config.sh_increase_interval.max(1);
+        (it / interval).min(self.config.sh_degree)
+    }
+
+    /// One optimisation step on one of `views`.
+    pub fn step(&mut self, views: &[TrainView]) -> StepReport {
+        let it = self.iteration + 1; // 1-based like 3DGS, so schedules match its numbers
+        let view = &views[self.view_index(views.len(), self.iteration)];
+        let bg = if self.config.random_background && view.alpha.is_some() {
+            let mut rng = rng_for(self.config.seed, STREAM_BACKGROUND, u64::from(it));
+            Vec3::new(rng.random(), rng.random(), rng.random())
+        } else {
+            Vec3::from(self.config.eval_background)
+        };
+        let opts = RenderOptions { background: bg, sh_degree: Some(self.active_sh_degree(it)) };
+        let r = render(&self.gaussians, &view.camera, &opts);
+        let target = view.target(bg);
+        let loss =
+            loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, self.config.lambda_dssim);
+        let grads = backward(&self.gaussians, &r, &loss.grad, None, None);
+        let d = &self.config.density;
+        let mut report =
+            StepReport { iteration: it, loss: loss.loss, psnr: psnr(&r.image.color, &target), ..Default::default() };
+
+        if it < d.until_iter {
+            self.stats.record(&r, &grads, 0);
+        }
+        let lrs = self.learning_rates(it);
+        self.adam.step(&mut self.gaussians, &grads.params, &lrs);
+        if it < d.until_iter {
+            if it > d.from_iter && it % d.interval == 0 {
+                let params = DensifyParams {
+                    grad_threshold: d.grad_threshold,
+                    dense_size: d.percent_dense * self.extent,
+                    min_opacity: d.min_opacity,
+                    max_screen_size: (it > d.opacity_reset_interval).then_some(d.max_screen_size),
+                    max_world_size: (it > d.opacity_reset_interval).then_some(d.max_world_size * self.extent),
+                    max_gaussians: d.max_gaussians,
+                };
+                let mut rng = rng_for(self.config.seed, STREAM_DENSIFY, u64::from(it));
+                report.densified =
+                    Some(densify_and_prune(&mut self.gaussians, &mut self.adam, &mut self.stats, &params, &mut rng));
+            }
+            if d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 {
+                reset_opacity(&mut self.gaussians, &mut self.adam, OPACITY_RESET_VALUE);
+            }
+        }
+        self.iteration = it;
+        report.gaussians = self.gaussians.len();
+        report
+    }
+
+    /// PSNR and SSIM of each view rendered over the evaluation background.
+    pub fn evaluate(&self, views: &[TrainView]) -> Vec<ViewMetrics> {
+        evaluate(&self.gaussians, views, Vec3::from(self.config.eval_background))
+    }
+}
+
+/// Quality of one rendered view.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ViewMetrics {
+    pub name: String,
+    pub psnr: f32,
+    pub ssim: f32,
+}
+
+/// Render every view over `background` and compare with its target.
+pub fn evaluate(gs: &GaussianSet, views: &[TrainView], background: Vec3) -> Vec<ViewMetrics> {
+    views
+        .iter()
+        .map(|v| {
+            let r = render(gs, &v.camera, &RenderOptions { background, sh_degree: None });
+            let target = v.target(background);
+            ViewMetrics {
+                name: v.name.clone(),
+                psnr: psnr(&r.image.color, &target),
+                ssim: ssim(&r.image.color, &target, r.width as usize, r.height as usize),
+            }
+        })
+        .collect()
+}
+
+/// Files of a stage I run folder.
+pub struct RunPaths {
+    pub dir: PathBuf,
+}
+
+impl RunPaths {
+    pub fn checkpoint(&self) -> PathBuf {
+        self.dir.join("checkpoint.bin")
+    }
+    pub fn static_ply(&self) -> PathBuf {
+        self.dir.join("static.ply")
+    }
+    pub fn config(&self) -> PathBuf {
+        self.dir.join("config.toml")
+    }
+    pub fn metrics(&self) -> PathBuf {
+        self.dir.join("metrics.json")
+    }
+    pub fn test_dir(&self) -> PathBuf {
+        self.dir.join("test")
+    }
+}
+
+/// Version tag of the checkpoint layout.
+const CHECKPOINT_FORMAT: u32 = 1;
+
+#[derive(Serialize, Deserialize)]
+struct Checkpoint {
+    format: u32,
+    trainer: GaussianTrainer,
+    /// Wall time spent before this checkpoint (seconds), so metrics add up over resumes.
+    elapsed_s: f64,
+}
+
+/// Write the trainer's full state atomically.
+pub fn save_checkpoint(path: &Path, trainer: &GaussianTrainer, elapsed_s: f64) -> Result<()> {
+    let bytes = postcard::to_stdvec(&Checkpoint { format: CHECKPOINT_FORMAT, trainer: trainer.clone(), elapsed_s })
+        .map_err(|e| Error::Other(format!("encoding checkpoint: {e}")))?;
+    write_atomic(path, &bytes)
+}
+
+/// Read a checkpoint written by [`save_checkpoint`].
+pub fn load_checkpoint(path: &Path) -> Result<(GaussianTrainer, f64)> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let ck: Checkpoint =
+        postcard::from_bytes(&bytes).map_err(|e| Error::bad_file(path, format!("not a stage I checkpoint: {e}")))?;
+    if ck.format != CHECKPOINT_FORMAT {
+        return Err(Error::bad_file(
+            path,
+            format!("checkpoint format {} (this build reads {CHECKPOINT_FORMAT})", ck.format),
+        ));
+    }
+    ck.trainer.gaussians.check_shapes().map_err(|m| Error::bad_file(path, m))?;
+    if ck.trainer.adam.len() != ck.trainer.gaussians.len() || ck.trainer.stats.len() != ck.trainer.gaussians.len() {
+        return Err(Error::bad_file(path, "optimizer or density state does not match the Gaussians"));
+    }
+    Ok((ck.trainer, ck.elapsed_s))
+}
+
+/// Summary written to metrics.json.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct StaticMetrics {
+    pub preset: String,
+    pub iterations: u32,
+    pub gaussians: usize,
+    pub mean_psnr: f32,
+    pub mean_ssim: f32,
+    pub test_views: Vec<ViewMetrics>,
+    pub wall_time_s: f64,
+    pub peak_rss_mib: Option<f64>,
+    pub train_resolution: [u32; 2],
+}
+
+/// Peak resident memory of this process (Linux VmHWM), in MiB.
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+/// How a run ended.
+pub enum RunOutcome {
+    Finished(Box<StaticMetrics>),
+    /// Stopped by the interrupt flag after writing a checkpoint at this iteration.
+    Interrupted(u32),
+}
+
+/// Train stage I into `run_dir`: resume from its checkpoint if asked, checkpoint
+/// every `checkpoint_interval` iterations and when `interrupt` is raised, and on
+/// completion write static.ply, config.toml, test renders and metrics.json.
+pub fn run_static(
+    config: StaticConfig,
+    train: &[TrainView],
+    test: &[TrainView],
+    run_dir: &Path,
+    resume: bool,
+    interrupt: &AtomicBool,
+    mut progress: impl FnMut(&StepReport),
+) -> Result<RunOutcome> {
+    std::fs::create_dir_all(run_dir).map_err(|e| Error::io(run_dir, e))?;
+    let paths = RunPaths { dir: run_dir.to_path_buf() };
+    let (mut trainer, mut elapsed_before) = if resume && paths.checkpoint().exists() {
+        let (t, e) = load_checkpoint(&paths.checkpoint())?;
+        if t.config != config {
+            return Err(Error::Config(format!(
+                "{} was written with a different configuration; resume with the same preset/config or start a new run",
+                paths.checkpoint().display()
+            )));
+        }
+        tracing::info!(iteration = t.iteration, "resuming from {}", paths.checkpoint().display());
+        (t, e)
+    } else {
+        (GaussianTrainer::new(config.clone(), train, None)?, 0.0)
+    };
+    let toml_text = toml::to_string(&config).map_err(|e| Error::Other(e.to_string()))?;
+    write_atomic(&paths.config(), toml_text.as_bytes())?;
+
+    let start = Instant::now();
+    while trainer.iteration < config.iterations {
+        if interrupt.load(Ordering::SeqCst) {
+            save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before + start.elapsed().as_secs_f64())?;
+            return Ok(RunOutcome::Interrupted(trainer.iteration));
+        }
+        let report = trainer.step(train);
+        if let Some(bad) = trainer.gaussians.first_non_finite() {
+            return Err(Error::Other(format!(
+                "training diverged at iteration {}: non-finite {:?}",
+                report.iteration, bad
+            )));
+        }
+        progress(&report);
+        if config.checkpoint_interval > 0 && trainer.iteration % config.checkpoint_interval == 0 {
+            save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before + start.elapsed().as_secs_f64())?;
+        }
+    }
+    elapsed_before += start.elapsed().as_secs_f64();
+    save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before)?;
+    crate::splat::ply::write_ply(&paths.static_ply(), &trainer.gaussians)?;
+
+    let eval_views = if test.is_empty() { train } else { test };
+    let metrics = trainer.evaluate(eval_views);
+    std::fs::create_dir_all(paths.test_dir()).map_err(|e| Error::io(paths.test_dir(), e))?;
+    let bg = Vec3::from(config.eval_background);
+    for (i, v) in eval_views.iter().enumerate() {
+        let r = render(&trainer.gaussians, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+        let mut bytes = Vec::new();
+        image::DynamicImage::ImageRgb8(r.to_rgb8())
+            .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+            .map_err(|e| Error::Other(format!("encoding test render: {e}")))?;
+        write_atomic(&paths.test_dir().join(format!("{i:03}.png")), &bytes)?;
+    }
+    let n = metrics.len().max(1) as f32;
+    let summary = StaticMetrics {
+        preset: config.preset.clone(),
+        iterations: trainer.iteration,
+        gaussians: trainer.gaussians.len(),
+        mean_psnr: metrics.iter().map(|m| m.psnr).sum::<f32>() / n,
+        mean_ssim: metrics.iter().map(|m| m.ssim).sum::<f32>() / n,
+        test_views: metrics,
+        wall_time_s: elapsed_before,
+        peak_rss_mib: peak_rss_mib(),
+        train_resolution: [train[0].width(), train[0].height()],
+    };
+    let json = serde_json::to_vec_pretty(&summary).map_err(|e| Error::Other(e.to_string()))?;
+    write_atomic(&paths.metrics(), &json)?;
+    Ok(RunOutcome::Finished(Box::new(summary)))
+}
