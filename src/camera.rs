@@ -34,7 +34,10 @@ impl Camera {
         // Rows of the rotation are the camera axes expressed in world coordinates.
         let r = Mat3::from_cols(x, y, z).transpose();
         let t = -(r * eye);
-        Self::new(intrinsics, Mat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), t.extend(1.0)))
+        Self::new(
+            intrinsics,
+            Mat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), t.extend(1.0)),
+        )
     }
 
     pub fn width(&self) -> u32 {
@@ -76,7 +79,8 @@ impl Camera {
     /// Load a camera file (see [`CameraFile`]), validating it.
     pub fn load_json(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let file: CameraFile = serde_json::from_str(&text).map_err(|e| Error::bad_file(path, format!("not a camera file: {e}")))?;
+        let file: CameraFile =
+            serde_json::from_str(&text).map_err(|e| Error::bad_file(path, format!("not a camera file: {e}")))?;
         file.to_camera().map_err(|m| Error::bad_file(path, m))
     }
 }
@@ -122,7 +126,8 @@ impl CameraFile {
         if !aim_capture::frame::is_rigid(&m, 1e-3) {
             return Err("world_to_camera is not a rigid transform (its rotation must be orthonormal with determinant +1, last row 0 0 0 1)".into());
         }
-        let k = Intrinsics { width: self.width, height: self.height, fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy };
+        let k =
+            Intrinsics { width: self.width, height: self.height, fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy };
         Ok(Camera::new(k, m))
     }
 }
