@@ -63,7 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         return Ok(());
     }
     if let Some(path) = &args.contact_sheet {
-        let sheet = aim::synth::contact_sheet::contact_sheet(160)?;
+        let sheet = aim::synth::contact_sheet::contact_sheet(192)?;
         super::save_png(path, &image::DynamicImage::ImageRgba8(sheet))
             .with_context(|| format!("writing {}", path.display()))?;
         println!("wrote {}", path.display());

@@ -8,9 +8,13 @@ use super::render::{render, RenderOptions};
 use crate::camera::Camera;
 use crate::error::Result;
 
+/// Objects per row of the sheet (each object takes two tiles: start, end).
+pub const OBJECTS_PER_ROW: usize = 2;
+
 /// Render each object at t = 0 and t = 1 from a three-quarter front view, tiles of
-/// `tile` pixels, composited over a light grey background. Rows follow
-/// [`OBJECT_NAMES`]; columns are start, end.
+/// `tile` pixels, composited over a light grey background. Objects follow
+/// [`OBJECT_NAMES`] left to right, top to bottom, [`OBJECTS_PER_ROW`] per row, each as a
+/// (start, end) pair of tiles; alternate pairs have a slightly darker background.
 pub fn contact_sheet(tile: u32) -> Result<image::RgbaImage> {
     let objects = OBJECT_NAMES.iter().map(|n| object(n)).collect::<Result<Vec<_>>>()?;
     let tiles: Vec<(usize, usize, image::RgbaImage)> = objects
@@ -32,14 +36,18 @@ pub fn contact_sheet(tile: u32) -> Result<image::RgbaImage> {
             })
         })
         .collect();
-    let mut sheet =
-        image::RgbaImage::from_pixel(2 * tile, OBJECT_NAMES.len() as u32 * tile, image::Rgba([235, 235, 235, 255]));
-    for (row, col, img) in tiles {
+    let rows = OBJECT_NAMES.len().div_ceil(OBJECTS_PER_ROW) as u32;
+    let cols = 2 * OBJECTS_PER_ROW as u32;
+    let mut sheet = image::RgbaImage::from_pixel(cols * tile, rows * tile, image::Rgba([255, 255, 255, 255]));
+    for (index, state, img) in tiles {
+        let gx = ((index % OBJECTS_PER_ROW) * 2 + state) as u32 * tile;
+        let gy = (index / OBJECTS_PER_ROW) as u32 * tile;
+        let shade = if (index / OBJECTS_PER_ROW + index % OBJECTS_PER_ROW) % 2 == 0 { 236.0 } else { 218.0 };
         for (x, y, p) in img.enumerate_pixels() {
             let a = p[3] as f32 / 255.0;
-            let dst = sheet.get_pixel_mut(col as u32 * tile + x, row as u32 * tile + y);
+            let dst = sheet.get_pixel_mut(gx + x, gy + y);
             for c in 0..3 {
-                dst[c] = (p[c] as f32 * a + dst[c] as f32 * (1.0 - a)).round() as u8;
+                dst[c] = (p[c] as f32 * a + shade * (1.0 - a)).round() as u8;
             }
         }
     }
