@@ -297,3 +297,46 @@ fn colmap_bad_input_is_an_error_naming_the_file_never_a_panic() {
     let err = read_colmap_model(&empty).unwrap_err().to_string();
     assert!(err.contains("cameras.bin") && err.contains("missing"), "{err}");
 }
+
+#[test]
+fn transforms_parsers_survive_mutated_bytes() {
+    let dir = dataset().join("start");
+    let good = std::fs::read(dir.join("transforms_test.json")).unwrap();
+    let path = dir.join("transforms_fuzz.json");
+    let mut state = 0x9e37_79b9u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let (mut ok, mut err) = (0, 0);
+    for round in 0..300 {
+        let mut b = good.clone();
+        if round % 3 == 0 {
+            b.truncate((next() % b.len() as u64) as usize);
+        } else {
+            for _ in 0..1 + next() % 3 {
+                let i = (next() % b.len() as u64) as usize;
+                b[i] = b"0123456789-.eE,:[]{}\"x "[(next() % 23) as usize];
+            }
+        }
+        std::fs::write(&path, &b).unwrap();
+        match aim_capture::dataset::load_aim_transforms(&path, aim_capture::Phase::Scan, &LoadOptions::default()) {
+            Ok(frames) => {
+                ok += 1;
+                assert!(frames.iter().all(|f| aim_capture::frame::is_rigid(&f.world_to_camera, 1e-3)));
+            }
+            Err(e) => {
+                err += 1;
+                let s = e.to_string();
+                assert!(s.contains("transforms_fuzz.json") || s.contains(".png"), "{s}");
+            }
+        }
+        if let Err(e) = load_nerfstudio(&path, &LoadOptions::default()) {
+            let s = e.to_string();
+            assert!(s.contains("transforms_fuzz.json") || s.contains(".png"), "{s}");
+        }
+    }
+    assert!(err > 100, "mutations were too mild: {ok} loaded, {err} rejected");
+}
