@@ -42,7 +42,7 @@ pub fn contact_sheet(tile: u32) -> Result<image::RgbaImage> {
     for (index, state, img) in tiles {
         let gx = ((index % OBJECTS_PER_ROW) * 2 + state) as u32 * tile;
         let gy = (index / OBJECTS_PER_ROW) as u32 * tile;
-        let shade = if (index / OBJECTS_PER_ROW + index % OBJECTS_PER_ROW) % 2 == 0 { 236.0 } else { 218.0 };
+        let shade = if (index / OBJECTS_PER_ROW + index % OBJECTS_PER_ROW).is_multiple_of(2) { 236.0 } else { 218.0 };
         for (x, y, p) in img.enumerate_pixels() {
             let a = p[3] as f32 / 255.0;
             let dst = sheet.get_pixel_mut(gx + x, gy + y);
