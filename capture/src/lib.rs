@@ -15,6 +15,8 @@ pub mod pipeline;
 pub mod recording;
 pub mod source;
 pub mod undistort;
+#[cfg(feature = "video")]
+pub mod video;
 pub mod vrs;
 
 pub use error::{Error, Result};

@@ -86,6 +86,9 @@ impl Default for RecordingOptions {
     }
 }
 
+/// (frame index, timestamp in seconds, detector evidence).
+pub type EvidenceSample = (usize, f64, f32);
+
 /// An opened recording, ready to run on a thread ([`crate::ingest::Ingest::spawn`]) or
 /// in batch ([`Opened::collect`]).
 pub struct Opened {
@@ -106,7 +109,7 @@ impl Opened {
     }
 
     /// As [`Opened::collect`], plus each frame's detector evidence (index, seconds, score).
-    pub fn collect_with_evidence(mut self) -> (Vec<Frame>, Vec<MotionEvent>, IngestStats, Vec<(usize, f64, f32)>) {
+    pub fn collect_with_evidence(mut self) -> (Vec<Frame>, Vec<MotionEvent>, IngestStats, Vec<EvidenceSample>) {
         let (f, e, s) = collect_all(self.source.as_mut(), &self.processor, &mut self.tagger);
         (f, e, s, std::mem::take(&mut self.tagger.trace))
     }
