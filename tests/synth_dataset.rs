@@ -80,6 +80,18 @@ fn written_dataset_loads_with_the_aim_loader_and_matches_the_plan() {
     let depth = f.depth.as_ref().unwrap();
     assert!(depth.iter().zip(&alpha).all(|(&d, &a)| (d == 0.0) == (a == 0) || (a > 0 && a < 255)));
     assert!(depth.iter().filter(|&&d| d > 0.0).all(|&d| d > 1.5 && d < 4.0));
+    // synth.json's bounds hold the object at the start and the end.
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("synth.json")).unwrap()).unwrap();
+    let corner =
+        |k: &str| glam::Vec3::from_slice(&serde_json::from_value::<Vec<f32>>(meta["bounds"][k].clone()).unwrap());
+    let (lo, hi) = (corner("min"), corner("max"));
+    for state in ["start", "end"] {
+        for k in 0..3 {
+            let m = aim::synth::gt::read_obj(&out.join(format!("gt/{state}/part_{k}.obj"))).unwrap();
+            assert!(m.vertices.iter().all(|v| v.cmpge(lo - 1e-4).all() && v.cmple(hi + 1e-4).all()));
+        }
+    }
+    assert!((hi - lo).max_element() < 2.0);
     // Ground truth files.
     for p in ["gt/joints.json", "gt/trans.json", "gt/start/part_2.obj", "gt/end/part_0.obj", "synth.json"] {
         assert!(out.join(p).is_file(), "{p} missing");

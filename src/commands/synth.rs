@@ -9,12 +9,15 @@ use aim::synth::{objects, write_dataset, SynthConfig, OBJECT_NAMES};
 #[derive(clap::Args)]
 pub struct Args {
     /// Object to generate (see --list).
-    #[arg(required_unless_present_any = ["list", "contact_sheet"])]
+    #[arg(required_unless_present_any = ["list", "contact_sheet", "all"])]
     pub object: Option<String>,
     /// List the objects and their joints, then exit.
     #[arg(long)]
     pub list: bool,
-    /// Output directory (default: out/synth/OBJECT).
+    /// Generate every object, each into OUT/OBJECT.
+    #[arg(long, conflicts_with = "object")]
+    pub all: bool,
+    /// Output directory (default: out/synth/OBJECT; with --all the parent, default out/synth).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Image width and height in pixels.
@@ -69,9 +72,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("wrote {}", path.display());
         return Ok(());
     }
-    let name = args.object.as_deref().unwrap_or_default();
-    let object = objects::object(name)?;
-    let out = args.out.clone().unwrap_or_else(|| PathBuf::from("out/synth").join(name));
     let cfg = SynthConfig {
         resolution: args.res,
         scan_views: args.scan_views,
@@ -81,25 +81,36 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         seed: args.seed,
         ..SynthConfig::default()
     };
-    let t = std::time::Instant::now();
-    let bar = indicatif::ProgressBar::new(0);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} views {elapsed}")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    );
-    bar.set_prefix(name.to_string());
-    let summary = write_dataset(&object, &out, &cfg, &|done, total| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
-    })?;
-    bar.finish_and_clear();
-    println!(
-        "wrote {} ({} views, {} parts) to {} in {:.1} s",
-        summary.object,
-        summary.views,
-        summary.parts,
-        summary.out.display(),
-        t.elapsed().as_secs_f64()
-    );
+    let jobs: Vec<(String, PathBuf)> = if args.all {
+        let root = args.out.clone().unwrap_or_else(|| PathBuf::from("out/synth"));
+        OBJECT_NAMES.iter().map(|n| (n.to_string(), root.join(n))).collect()
+    } else {
+        let name = args.object.clone().unwrap_or_default();
+        let out = args.out.clone().unwrap_or_else(|| PathBuf::from("out/synth").join(&name));
+        vec![(name, out)]
+    };
+    for (name, out) in jobs {
+        let object = objects::object(&name)?;
+        let t = std::time::Instant::now();
+        let bar = indicatif::ProgressBar::new(0);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} views {elapsed}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        bar.set_prefix(name.clone());
+        let summary = write_dataset(&object, &out, &cfg, &|done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        })?;
+        bar.finish_and_clear();
+        println!(
+            "wrote {} ({} views, {} parts) to {} in {:.1} s",
+            summary.object,
+            summary.views,
+            summary.parts,
+            summary.out.display(),
+            t.elapsed().as_secs_f64()
+        );
+    }
     Ok(())
 }

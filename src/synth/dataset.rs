@@ -250,7 +250,16 @@ struct SynthMeta<'a> {
     version: &'static str,
     object: &'a str,
     config: &'a SynthConfig,
+    /// World box containing the object at every time of the motion (for initialising
+    /// random points inside the object's region).
+    bounds: BoundsJson,
     conventions: Conventions,
+}
+
+#[derive(Serialize)]
+struct BoundsJson {
+    min: [f32; 3],
+    max: [f32; 3],
 }
 
 #[derive(Serialize)]
@@ -361,6 +370,10 @@ pub fn write_dataset(
         version: env!("CARGO_PKG_VERSION"),
         object: &object.name,
         config: cfg,
+        bounds: {
+            let b = object.swept_bounds(32);
+            BoundsJson { min: b.min.to_array(), max: b.max.to_array() }
+        },
         conventions: Conventions {
             world: "z up, object front faces -y, units are metres",
             transform_matrix: "Blender/OpenGL camera-to-world (x right, y up, z backward), list of rows",

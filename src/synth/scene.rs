@@ -160,6 +160,12 @@ impl ArticulatedObject {
         scene
     }
 
+    /// World bounds of the object over the whole motion (sampled at `steps + 1` times,
+    /// each part's rest bounds transformed, so conservative for boxes).
+    pub fn swept_bounds(&self, steps: u32) -> Aabb {
+        (0..=steps.max(1)).fold(Aabb::EMPTY, |b, i| b.union(self.posed(i as f32 / steps.max(1) as f32).bounds()))
+    }
+
     /// Part meshes in world coordinates at motion time `t`.
     pub fn meshes_at(&self, t: f32, segments: u32) -> Vec<MeshData> {
         (0..self.parts.len()).map(|i| self.parts[i].mesh(segments).transformed(&self.part_transform(i, t))).collect()
