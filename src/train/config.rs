@@ -128,7 +128,7 @@ impl StaticConfig {
         let mut c = Self::paper();
         c.preset = "cpu".into();
         c.iterations = 3000;
-        c.resolution = 128;
+        c.resolution = 256;
         c.checkpoint_interval = 500;
         c.density.from_iter = 300;
         c.density.until_iter = 2400;
