@@ -76,7 +76,7 @@ pub fn read_depth_mm(path: &Path, width: u32, height: u32) -> Result<Vec<f32>> {
             format!("depth is {}x{} but its image is {width}x{height}", img.width(), img.height()),
         ));
     }
-    Ok(img.into_raw().into_iter().map(|mm| mm as f32 * 1e-3).collect())
+    Ok(img.into_raw().into_iter().map(|mm| mm as f32 / 1000.0).collect())
 }
 
 /// Resolve a `file_path` from a transforms file: relative to `dir`, a leading `./`
@@ -117,4 +117,49 @@ pub(crate) fn matrix_from_rows(rows: &[[f32; 4]; 4], path: &Path, what: &str) ->
         ));
     }
     Ok(m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scratch(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("aim_capture_dataset_{}_{name}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn image_paths_resolve_with_or_without_extension() {
+        let d = scratch("paths");
+        std::fs::write(d.join("a.png"), b"").unwrap();
+        assert_eq!(resolve_image_path(&d, "./a"), d.join("a.png"));
+        assert_eq!(resolve_image_path(&d, "a.png"), d.join("a.png"));
+        assert_eq!(resolve_image_path(&d, "b.jpg"), d.join("b.jpg"));
+    }
+
+    #[test]
+    fn matrices_snap_residue_and_reject_non_rigid() {
+        let p = Path::new("t.json");
+        let mut rows = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, -1.0, 1.0], [0.0, 1.0, 0.0, 2.0], [1e-8, 0.0, -1e-8, 1.0]];
+        let m = matrix_from_rows(&rows, p, "f").unwrap();
+        assert_eq!(m.row(3), glam::Vec4::W);
+        assert_eq!(m.w_axis.truncate(), glam::Vec3::new(0.5, 1.0, 2.0));
+        rows[0][0] = 1.1;
+        let e = matrix_from_rows(&rows, p, "frame 3").unwrap_err().to_string();
+        assert!(e.contains("t.json") && e.contains("frame 3") && e.contains("not rigid"), "{e}");
+    }
+
+    #[test]
+    fn depth_must_be_16_bit_millimetres() {
+        let d = scratch("depth");
+        let p16 = d.join("d16.png");
+        image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(2, 1, vec![0, 1234]).unwrap().save(&p16).unwrap();
+        assert_eq!(read_depth_mm(&p16, 2, 1).unwrap(), vec![0.0, 1.234]);
+        assert!(read_depth_mm(&p16, 3, 1).unwrap_err().to_string().contains("d16.png"));
+        let p8 = d.join("d8.png");
+        image::GrayImage::from_raw(2, 1, vec![0, 12]).unwrap().save(&p8).unwrap();
+        let e = read_depth_mm(&p8, 2, 1).unwrap_err().to_string();
+        assert!(e.contains("d8.png") && e.contains("16-bit"), "{e}");
+    }
 }
