@@ -86,6 +86,11 @@ fn synthetic_recording_hand_window_within_two_frames() {
     assert_eq!(frames[hin].phase, Phase::Motion);
     assert_eq!(frames[hin - 1].phase, Phase::Scan);
     assert_eq!(frames[hout].phase, Phase::After);
+    // Batch use knows the whole window: motion frames get a motion time in [0, 1], increasing.
+    let mt: Vec<f32> = frames.iter().filter(|f| f.phase == Phase::Motion).map(|f| f.motion_time.unwrap()).collect();
+    assert_eq!(mt[0], 0.0);
+    assert!(mt.windows(2).all(|w| w[0] < w[1]) && *mt.last().unwrap() < 1.0, "{mt:?}");
+    assert!(frames.iter().filter(|f| f.phase != Phase::Motion).all(|f| f.motion_time.is_none()));
     // Frames are posed: the object's centre projects inside every undistorted image.
     let c = glam::Vec3::new(0.0, 0.0, 0.0);
     for f in &frames {

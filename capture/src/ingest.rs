@@ -356,5 +356,21 @@ pub fn collect_all(
     }
     frames.extend(tagger.flush());
     stats.delivered = frames.len() as u64;
-    (frames, tagger.tracker.events.clone(), stats)
+    let events = tagger.tracker.events.clone();
+    fill_motion_time(&mut frames, &events);
+    (frames, events, stats)
+}
+
+/// Batch only (the whole window is known): give `Motion` frames without a motion time
+/// `motion_time = (t - hand_in) / (hand_out - hand_in)` in [0, 1].
+pub fn fill_motion_time(frames: &mut [Frame], events: &[MotionEvent]) {
+    let (Some(t_in), Some(t_out)) = crate::detect::window_of(events) else { return };
+    if t_out <= t_in {
+        return;
+    }
+    for f in frames.iter_mut() {
+        if f.phase == crate::frame::Phase::Motion && f.motion_time.is_none() {
+            f.motion_time = Some(((f.timestamp_s - t_in) / (t_out - t_in)).clamp(0.0, 1.0) as f32);
+        }
+    }
 }

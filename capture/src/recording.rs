@@ -64,6 +64,9 @@ pub struct RecordingOptions {
     pub hands: Option<PathBuf>,
     pub region: Option<ObjectRegion>,
     pub vignetting: Option<PathBuf>,
+    /// MPS online_calibration.jsonl: use the camera-rgb of its first line (the start of
+    /// the recording) instead of the factory calibration.
+    pub online_calibration: Option<PathBuf>,
     pub detector: DetectorKind,
     /// Frame rate assumed for folders without timestamps.
     pub fps: f64,
@@ -79,6 +82,7 @@ impl Default for RecordingOptions {
             hands: None,
             region: None,
             vignetting: None,
+            online_calibration: None,
             detector: DetectorKind::Auto,
             fps: 30.0,
             discover: true,
@@ -157,7 +161,10 @@ pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
         Some(p) => Some(image::open(p).map_err(|e| Error::bad_file(p, e.to_string()))?.to_luma8()),
         None => None,
     };
-    let camera = source.camera();
+    let mut camera = source.camera();
+    if let Some(p) = &opts.online_calibration {
+        camera = Some(online_rgb_camera(p, camera.as_ref())?);
+    }
     let trajectory = trajectory_path.as_deref().map(Trajectory::load).transpose()?;
     let processor = Processor::new(camera.as_ref(), &opts.undistort, vignetting.as_ref()).with_trajectory(trajectory);
     let hands = match (&hands_path, opts.detector) {
@@ -177,6 +184,16 @@ pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
         (DetectorKind::None, _) => Box::new(NoEvidence),
     };
     Ok(Opened { source, processor, tagger: PhaseTagger::new(evidence), camera, trajectory_path, hands_path, region })
+}
+
+/// The RGB camera of the first line of an online_calibration.jsonl, at the resolution of
+/// `like` (the source's own calibration) or 1408.
+fn online_rgb_camera(path: &Path, like: Option<&CameraCalibration>) -> Result<CameraCalibration> {
+    let lines = crate::calib::load_online_calibration(path)?;
+    let first = lines.first().ok_or_else(|| Error::bad_file(path, "no calibration lines"))?;
+    let cam = first.calibration.rgb(path)?;
+    let (w, h) = like.map(|c| (c.width, c.height)).unwrap_or((1408, 1408));
+    cam.rescaled_to(w, h).map_err(|e| Error::bad_file(path, e))
 }
 
 /// `aim capture inspect` report.

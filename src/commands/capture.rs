@@ -57,6 +57,9 @@ pub struct Common {
     /// Object region in world coordinates: x0,y0,z0,x1,y1,z1 (default: object_region.json beside the recording).
     #[arg(long, value_delimiter = ',', num_args = 6)]
     region: Option<Vec<f64>>,
+    /// MPS online_calibration.jsonl to use instead of the recording's factory calibration.
+    #[arg(long)]
+    online_calibration: Option<PathBuf>,
     /// auto | mps | skin | none | HAND_IN_S,HAND_OUT_S
     #[arg(long, default_value = "auto")]
     detector: String,
@@ -75,6 +78,7 @@ impl Common {
             undistort: UndistortConfig { width: self.size, height: self.size, focal: self.focal, upright: false },
             trajectory: self.trajectory.clone(),
             hands: self.hands.clone(),
+            online_calibration: self.online_calibration.clone(),
             region,
             detector,
             ..RecordingOptions::default()
