@@ -49,6 +49,10 @@ fn written_dataset_loads_with_the_aim_loader_and_matches_the_plan() {
     for (i, t) in times.iter().enumerate() {
         assert!((t - i as f32 / 22.0).abs() < 1e-6, "time {i}: {t}");
     }
+    for f in ds.motion.train.iter().chain(&ds.motion.test) {
+        let i = (f.timestamp_s * 30.0).round();
+        assert!((f.timestamp_s * 30.0 - i).abs() < 1e-6 && (i as f32 / 22.0 - f.motion_time.unwrap()).abs() < 1e-6);
+    }
     assert!(ds.start.train.iter().all(|f| f.motion_time.is_none() && f.phase == Phase::Scan));
     assert!(end.train.iter().all(|f| f.phase == Phase::After));
 

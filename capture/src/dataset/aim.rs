@@ -50,7 +50,8 @@ pub struct AimDataset {
     pub root: PathBuf,
     /// Start state (static scan).
     pub start: AimPhase,
-    /// The motion video (frames carry `motion_time`).
+    /// The motion video (frames carry `motion_time`; `timestamp_s` is the frame's place
+    /// in the whole video, train and test together, at the nominal 30 fps).
     pub motion: AimPhase,
     /// End state, when the dataset has an `end/` folder.
     pub end: Option<AimPhase>,
@@ -78,7 +79,17 @@ fn load_phase(root: &Path, phase: Phase, opts: &LoadOptions, required: bool) -> 
     }
     let train = load_aim_transforms(&train_path, phase, opts)?;
     let test_path = dir.join("transforms_test.json");
-    let test = if test_path.exists() { load_aim_transforms(&test_path, phase, opts)? } else { Vec::new() };
+    let mut test = if test_path.exists() { load_aim_transforms(&test_path, phase, opts)? } else { Vec::new() };
+    // Motion frames of both files share one time line: put them on one clock, frame
+    // i of N (time i / (N - 1)) at i / NOMINAL_FPS seconds.
+    let n = train.len() + test.len();
+    let mut train = train;
+    if n > 1 && train.iter().chain(&test).all(|f| f.motion_time.is_some()) {
+        for f in train.iter_mut().chain(test.iter_mut()) {
+            let i = (f.motion_time.unwrap_or(0.0) as f64 * (n - 1) as f64).round();
+            f.timestamp_s = i / NOMINAL_FPS;
+        }
+    }
     Ok(Some(AimPhase { train, test }))
 }
 
