@@ -67,7 +67,7 @@ impl FrameSource for VrsLoop {
         if self.served >= self.total {
             return None;
         }
-        if self.served > 0 && self.served % self.n == 0 {
+        if self.served > 0 && self.served.is_multiple_of(self.n) {
             match VrsSource::open(&self.path) {
                 Ok(s) => self.src = s,
                 Err(e) => return Some(Err(e)),
