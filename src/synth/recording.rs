@@ -267,7 +267,7 @@ fn plan(obj: &ArticulatedObject, cfg: &RecordingConfig) -> Result<Script> {
     // Approach from whichever side leaves the swept box soonest (short time near the object
     // before contact), never from inside the object.
     let choose = |p: Vec3| -> Vec3 {
-        let mut cands = vec![f, e2, -e2, Vec3::Z];
+        let mut cands = [f, e2, -e2, Vec3::Z];
         cands.sort_by(|a, b| exit_distance(&region, p, *a).total_cmp(&exit_distance(&region, p, *b)));
         cands[0]
     };
