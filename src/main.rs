@@ -19,6 +19,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The built-in end-to-end job on a synthetic object with ground truth.
+    Demo(commands::demo::Args),
     /// Render a 3DGS PLY from a camera to a PNG.
     Render(commands::render::Args),
     /// Benchmarks that print JSON.
@@ -47,6 +49,7 @@ fn main() -> ExitCode {
         Command::Capture(c) => commands::capture::run(c),
         Command::SynthRecording(a) => commands::synth_recording::run(a),
         Command::TrainStatic(args) => commands::train_static::run(args),
+        Command::Demo(args) => commands::demo::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

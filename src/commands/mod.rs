@@ -2,6 +2,7 @@
 //! is done by library functions.
 
 pub mod bench;
+pub mod demo;
 pub mod capture;
 pub mod render;
 pub mod synth;
