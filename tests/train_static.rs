@@ -49,8 +49,8 @@ fn small_config() -> StaticConfig {
 }
 
 fn views(dataset: &Path, file: &str) -> Vec<aim::train::views::TrainView> {
-    let frames =
-        load_aim_transforms(&dataset.join("start").join(file), Phase::Scan, &LoadOptions { depth: false }).expect("loads");
+    let frames = load_aim_transforms(&dataset.join("start").join(file), Phase::Scan, &LoadOptions { depth: false })
+        .expect("loads");
     aim::train::views::views_from_frames(&frames, 0).expect("views")
 }
 
@@ -74,7 +74,8 @@ fn interrupted_run_resumes_to_the_uninterrupted_result_and_outputs_reload() {
     let init = aim::train::static_stage::GaussianTrainer::new(cfg.clone(), &train, None).expect("trainer");
     let psnr_init = evaluate(&init.gaussians, &test, glam::Vec3::ONE).iter().map(|m| m.psnr).sum::<f32>() / 3.0;
 
-    let full = finished(run_static(cfg.clone(), &train, &test, &root.join("full"), false, &never, |_| {}).expect("runs"));
+    let full =
+        finished(run_static(cfg.clone(), &train, &test, &root.join("full"), false, &never, |_| {}).expect("runs"));
     assert!(full.mean_psnr > psnr_init + 5.0, "training should help: {psnr_init} -> {}", full.mean_psnr);
 
     // Interrupt after iteration 100 (between a densification and an opacity reset), then resume.
@@ -86,7 +87,8 @@ fn interrupted_run_resumes_to_the_uninterrupted_result_and_outputs_reload() {
     })
     .expect("runs");
     assert!(matches!(out, RunOutcome::Interrupted(100)));
-    let resumed = finished(run_static(cfg.clone(), &train, &test, &root.join("split"), true, &never, |_| {}).expect("resumes"));
+    let resumed =
+        finished(run_static(cfg.clone(), &train, &test, &root.join("split"), true, &never, |_| {}).expect("resumes"));
     assert!((resumed.mean_psnr - full.mean_psnr).abs() < 0.2, "{} vs {}", resumed.mean_psnr, full.mean_psnr);
     let a = aim::splat::ply::read_ply(&root.join("full").join("static.ply")).expect("reads");
     let b = aim::splat::ply::read_ply(&root.join("split").join("static.ply")).expect("reads");
@@ -124,7 +126,12 @@ fn killed_cli_run_resumes_from_its_last_checkpoint() {
     let bin = env!("CARGO_BIN_EXE_aim");
     let run = |out: &str, resume: bool| {
         let mut c = Command::new(bin);
-        c.args(["--log", "warn", "train-static"]).arg(&data).arg("--out").arg(root.join(out)).arg("--config").arg(&cfg_path);
+        c.args(["--log", "warn", "train-static"])
+            .arg(&data)
+            .arg("--out")
+            .arg(root.join(out))
+            .arg("--config")
+            .arg(&cfg_path);
         if resume {
             c.arg("--resume");
         }
@@ -147,7 +154,8 @@ fn killed_cli_run_resumes_from_its_last_checkpoint() {
     assert!(resumed.status.success(), "{}", String::from_utf8_lossy(&resumed.stderr));
     let metric = |dir: &str| -> f64 {
         let v: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(root.join(dir).join("metrics.json")).expect("metrics")).expect("json");
+            serde_json::from_slice(&std::fs::read(root.join(dir).join("metrics.json")).expect("metrics"))
+                .expect("json");
         v["mean_psnr"].as_f64().expect("psnr")
     };
     assert!((metric("full") - metric("killed")).abs() < 0.2, "{} vs {}", metric("full"), metric("killed"));

@@ -2,8 +2,8 @@
 //! is done by library functions.
 
 pub mod bench;
-pub mod demo;
 pub mod capture;
+pub mod demo;
 pub mod render;
 pub mod synth;
 pub mod synth_recording;

@@ -123,7 +123,7 @@ pub fn project_one(gs: &GaussianSet, i: usize, cam: &ProjectionCamera, sh_degree
     let full = tm * tm.transpose();
     let cov = top2x2(full) + Mat2::from_diagonal(Vec2::splat(COV2D_DILATION));
     let det = cov.determinant();
-    if !(det > 0.0) {
+    if det.is_nan() || det <= 0.0 {
         return None;
     }
     let inv = cov.inverse();

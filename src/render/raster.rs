@@ -118,7 +118,7 @@ fn row_span(p: &Projected, py: u32, r: &[u32; 4]) -> (u32, u32) {
     // a dx^2 + 2 b dy dx + (c dy^2 + 2 power_cut) <= 0
     let half_b = b * dy;
     let disc = half_b * half_b - a * (c * dy * dy + 2.0 * p.power_cut);
-    if !(disc >= 0.0) {
+    if disc.is_nan() || disc < 0.0 {
         return (0, 0);
     }
     let root = disc.sqrt();
@@ -257,7 +257,7 @@ pub fn rasterize(
                 t: [1.0; TILE_PIXELS],
                 last: [0.0; TILE_PIXELS],
             };
-            let npix = ((rect[2] - rect[0]) * (rect[3] - rect[1])) as u32;
+            let npix = (rect[2] - rect[0]) * (rect[3] - rect[1]);
             // 1.0 once a pixel's transmittance would drop below TRANSMITTANCE_MIN.
             let mut done = [0.0f32; TILE_PIXELS];
             let mut ndone = 0u32;

@@ -204,7 +204,7 @@ impl StaticConfig {
             return Err("init.points must be at least 1".into());
         }
         for i in 0..3 {
-            if !(self.init.box_min[i] < self.init.box_max[i]) {
+            if self.init.box_min[i].partial_cmp(&self.init.box_max[i]) != Some(std::cmp::Ordering::Less) {
                 return Err(format!("init.box_min[{i}] must be below init.box_max[{i}]"));
             }
         }

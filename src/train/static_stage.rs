@@ -152,7 +152,7 @@ impl GaussianTrainer {
         let lrs = self.learning_rates(it);
         self.adam.step(&mut self.gaussians, &grads.params, &lrs);
         if it < d.until_iter {
-            if it > d.from_iter && it % d.interval == 0 {
+            if it > d.from_iter && it.is_multiple_of(d.interval) {
                 let params = DensifyParams {
                     grad_threshold: d.grad_threshold,
                     dense_size: d.percent_dense * self.extent,
@@ -165,7 +165,7 @@ impl GaussianTrainer {
                 report.densified =
                     Some(densify_and_prune(&mut self.gaussians, &mut self.adam, &mut self.stats, &params, &mut rng));
             }
-            if d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 {
+            if d.opacity_reset_interval > 0 && it.is_multiple_of(d.opacity_reset_interval) {
                 reset_opacity(&mut self.gaussians, &mut self.adam, OPACITY_RESET_VALUE);
             }
         }
