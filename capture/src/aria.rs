@@ -52,6 +52,11 @@ impl AriaRecording {
         Self::from_vrs(vrs, StreamId::ARIA_RGB)
     }
 
+    /// From bytes in memory (tests, fuzzing); `name` appears in errors.
+    pub fn from_bytes(name: &str, bytes: Vec<u8>) -> Result<Self> {
+        Self::from_vrs(VrsFile::from_bytes(name, bytes)?, StreamId::ARIA_RGB)
+    }
+
     pub fn from_vrs(mut vrs: VrsFile, stream: StreamId) -> Result<Self> {
         if !vrs.streams.contains_key(&stream) {
             return Err(Error::bad_file(vrs.path(), format!("no stream {stream} (Aria RGB camera) in the recording")));

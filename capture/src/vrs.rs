@@ -300,10 +300,14 @@ pub fn decompress(path: &Path, compression: Compression, data: &[u8], uncompress
     Ok(out)
 }
 
+/// What a VRS file is read through: a file, or bytes in memory (tests, fuzzing).
+pub trait ReadSeek: Read + Seek + Send {}
+impl<T: Read + Seek + Send> ReadSeek for T {}
+
 /// An open VRS file: header, tags and index in memory; records read on demand.
 pub struct VrsFile {
     path: PathBuf,
-    file: File,
+    file: Box<dyn ReadSeek>,
     file_size: u64,
     pub header: FileHeader,
     pub streams: BTreeMap<StreamId, StreamTags>,
@@ -329,8 +333,19 @@ impl fmt::Debug for VrsFile {
 impl VrsFile {
     pub fn open(path: impl AsRef<Path>) -> Result<Self> {
         let path = path.as_ref().to_path_buf();
-        let mut file = File::open(&path).map_err(|e| Error::io(&path, e))?;
+        let file = File::open(&path).map_err(|e| Error::io(&path, e))?;
         let file_size = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+        Self::from_reader(path, Box::new(std::io::BufReader::new(file)), file_size)
+    }
+
+    /// Read a VRS file from bytes in memory; `name` is used in error messages.
+    pub fn from_bytes(name: impl Into<PathBuf>, bytes: Vec<u8>) -> Result<Self> {
+        let size = bytes.len() as u64;
+        Self::from_reader(name.into(), Box::new(std::io::Cursor::new(bytes)), size)
+    }
+
+    /// Read a VRS file through any seekable reader of `file_size` bytes.
+    pub fn from_reader(path: PathBuf, mut file: Box<dyn ReadSeek>, file_size: u64) -> Result<Self> {
         let mut head = vec![0u8; (MIN_FILE_HEADER as u64).min(file_size) as usize];
         file.read_exact(&mut head).map_err(|e| Error::io(&path, e))?;
         let header = parse_file_header(&path, &head)?;
