@@ -101,9 +101,14 @@ fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32
         let (pg, _) = rasterize_backward(&proj, &bins, w, h, opts.background, &out, grad, None, None);
         t[3].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
-        let raw: Vec<_> = (0..gs.len())
-            .into_par_iter()
-            .map(|i| proj[i].as_ref().map(|_| project_one_backward(gs, i, &pc, gs.sh_degree, &pg[i])))
+        let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
+        let mut rest = vec![0.0f32; rest_w.max(1) * gs.len()];
+        let raw: Vec<_> = rest
+            .par_chunks_mut(rest_w.max(1))
+            .enumerate()
+            .map(|(i, r)| {
+                proj[i].as_ref().map(|p| project_one_backward(gs, i, &pc, gs.sh_degree, p, &pg[i], &mut r[..rest_w]))
+            })
             .collect();
         t[4].push(clock.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box(raw);

@@ -116,22 +116,29 @@ pub fn backward(
         grad_depth,
     );
     let pc = ProjectionCamera::new(&fwd.camera);
-    let raw: Vec<Option<project::RawGrad>> = (0..gs.len())
-        .into_par_iter()
-        .map(|i| {
-            fwd.projected[i].as_ref().map(|_| project::project_one_backward(gs, i, &pc, fwd.sh_degree, &proj_grads[i]))
+    let n = gs.len();
+    let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
+    // Rows of at least one float so the chunked iteration also works at degree 0.
+    let row = rest_w.max(1);
+    let mut sh_rest = vec![0.0; row * n];
+    let raw: Vec<Option<project::RawGrad>> = sh_rest
+        .par_chunks_mut(row)
+        .enumerate()
+        .map(|(i, rest)| {
+            fwd.projected[i].as_ref().map(|p| {
+                project::project_one_backward(gs, i, &pc, fwd.sh_degree, p, &proj_grads[i], &mut rest[..rest_w])
+            })
         })
         .collect();
+    sh_rest.truncate(rest_w * n);
 
     let mut params = GaussianSet::new(gs.sh_degree);
-    let n = gs.len();
+    params.sh_rest = sh_rest;
     params.means = vec![0.0; 3 * n];
     params.log_scales = vec![0.0; 3 * n];
     params.rotations = vec![0.0; 4 * n];
     params.opacity_logits = vec![0.0; n];
     params.sh_dc = vec![0.0; 3 * n];
-    let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
-    params.sh_rest = vec![0.0; rest_w * n];
     let mut norms = vec![0.0; n];
     let mut visible = vec![false; n];
     let ndc_scale = glam::Vec2::new(0.5 * w as f32, 0.5 * h as f32);
@@ -143,7 +150,6 @@ pub fn backward(
         params.rotations[4 * i..4 * i + 4].copy_from_slice(&g.rotation);
         params.opacity_logits[i] = g.opacity_logit;
         params.sh_dc[3 * i..3 * i + 3].copy_from_slice(&g.sh_dc.to_array());
-        params.sh_rest[rest_w * i..rest_w * (i + 1)].copy_from_slice(&g.sh_rest);
         norms[i] = (proj_grads[i].mean2d * ndc_scale).length();
     }
     Gradients { params, background: bg, mean2d_grad_norm: norms, visible }

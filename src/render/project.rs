@@ -34,6 +34,9 @@ pub struct Projected {
     pub power_cut: f32,
     /// 3 sigma of the major axis in pixels (the screen size density control prunes on).
     pub radius: f32,
+    /// Row-chord coefficients of the ellipse power >= power_cut: for a row at
+    /// vertical offset dy the reachable dx are -s0 dy +- sqrt(s1 dy^2 + s2).
+    pub span: [f32; 3],
 }
 
 /// Everything about the camera the projection needs, computed once per render.
@@ -154,7 +157,10 @@ pub fn project_one(gs: &GaussianSet, i: usize, cam: &ProjectionCamera, sh_degree
     let power_cut = (ALPHA_MIN / opacity).ln() - 1e-3;
     let mid = 0.5 * (cov.x_axis.x + cov.y_axis.y);
     let radius = 3.0 * (mid + (mid * mid - det).max(0.0).sqrt()).sqrt();
-    Some(Projected { mean2d, conic, depth: t.z, color, opacity, bbox, power_cut, radius })
+    // a dx^2 + 2 b dy dx + c dy^2 + 2 power_cut <= 0, divided through by a.
+    let [a, b, c] = conic;
+    let span = [b / a, (b * b - a * c) / (a * a), -2.0 * power_cut / a];
+    Some(Projected { mean2d, conic, depth: t.z, color, opacity, bbox, power_cut, radius, span })
 }
 
 /// View-dependent colour (SH + 0.5, clamped at 0).
@@ -180,8 +186,9 @@ pub struct ProjectedGrad {
     pub depth: f32,
 }
 
-/// Gradient for one Gaussian's raw parameters.
-#[derive(Clone, Debug, Default)]
+/// Gradient for one Gaussian's raw parameters (the SH rest coefficients are
+/// written to a caller-provided row instead, to avoid an allocation per Gaussian).
+#[derive(Clone, Copy, Debug, Default)]
 pub struct RawGrad {
     pub mean: Vec3,
     pub log_scale: Vec3,
@@ -189,17 +196,19 @@ pub struct RawGrad {
     pub rotation: [f32; 4],
     pub opacity_logit: f32,
     pub sh_dc: Vec3,
-    /// Coefficient-major [k][rgb] for k >= 1, length (K-1)*3 of the stored degree.
-    pub sh_rest: Vec<f32>,
 }
 
-/// Backward of [`project_one`] for a Gaussian that was not culled.
+/// Backward of [`project_one`] for a Gaussian that was not culled: `proj` is
+/// its forward result, `sh_rest` receives dL/d(SH rest) (coefficient-major
+/// `[k][rgb]`, the stored degree's width; entries above the active degree stay 0).
 pub fn project_one_backward(
     gs: &GaussianSet,
     i: usize,
     cam: &ProjectionCamera,
     sh_degree: u32,
+    proj: &Projected,
     g: &ProjectedGrad,
+    sh_rest: &mut [f32],
 ) -> RawGrad {
     let mean = gs.mean(i);
     let t = cam.rot * mean + cam.trans;
@@ -215,7 +224,7 @@ pub fn project_one_backward(
     let cov = top2x2(tm * tm.transpose()) + Mat2::from_diagonal(Vec2::splat(COV2D_DILATION));
     let inv = cov.inverse();
 
-    let mut out = RawGrad { sh_rest: vec![0.0; gs.width(crate::splat::ParamGroup::ShRest)], ..Default::default() };
+    let mut out = RawGrad::default();
 
     // Opacity: sigmoid'.
     let op = sigmoid(gs.opacity_logits[i]);
@@ -277,19 +286,18 @@ pub fn project_one_backward(
     let vlen = v.length();
     if vlen > 0.0 {
         let dir = v / vlen;
-        let color = eval_color(gs, i, cam.position, sh_degree);
         // The clamp at 0 passes no gradient.
-        let gc = Vec3::select(color.cmpgt(Vec3::ZERO), g.color, Vec3::ZERO);
+        let gc = Vec3::select(proj.color.cmpgt(Vec3::ZERO), g.color, Vec3::ZERO);
         let y = sh::basis(sh_degree, dir);
         let dy = sh::basis_grad(sh_degree, dir);
         out.sh_dc = gc * y[0];
-        let rest_w = out.sh_rest.len();
+        let rest_w = sh_rest.len();
         let rest = &gs.sh_rest[i * rest_w..(i + 1) * rest_w];
         let mut g_dir = Vec3::ZERO;
         for k in 1..sh_coeffs(sh_degree) {
             let coeff = Vec3::from_slice(&rest[3 * (k - 1)..3 * k]);
             let gk = gc * y[k];
-            out.sh_rest[3 * (k - 1)..3 * k].copy_from_slice(&gk.to_array());
+            sh_rest[3 * (k - 1)..3 * k].copy_from_slice(&gk.to_array());
             g_dir += dy[k] * coeff.dot(gc);
         }
         out.mean += (g_dir - dir * dir.dot(g_dir)) / vlen;

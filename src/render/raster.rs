@@ -5,7 +5,7 @@
 
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
-use wide::{f32x8, CmpEq, CmpGe, CmpLe, CmpLt};
+use wide::{f32x8, CmpGe, CmpGt, CmpLe, CmpLt};
 
 /// SIMD lanes: adjacent pixels of one tile row.
 type Lanes = f32x8;
@@ -113,16 +113,14 @@ fn clip_rows(bbox: &[u32; 4], r: &[u32; 4]) -> Option<(u32, u32)> {
 /// reach ALPHA_MIN: the row's chord of the conservative ellipse power >= power_cut.
 #[inline(always)]
 fn row_span(p: &Projected, py: u32, r: &[u32; 4]) -> (u32, u32) {
-    let [a, b, c] = p.conic;
+    let [s0, s1, s2] = p.span;
     let dy = p.mean2d.y - (py as f32 + 0.5);
-    // a dx^2 + 2 b dy dx + (c dy^2 + 2 power_cut) <= 0
-    let half_b = b * dy;
-    let disc = half_b * half_b - a * (c * dy * dy + 2.0 * p.power_cut);
+    let disc = s1 * dy * dy + s2;
     if disc.is_nan() || disc < 0.0 {
         return (0, 0);
     }
     let root = disc.sqrt();
-    let (dx_lo, dx_hi) = ((-half_b - root) / a, (-half_b + root) / a);
+    let (dx_lo, dx_hi) = (-s0 * dy - root, -s0 * dy + root);
     // dx = mean.x - (px + 0.5)
     // Clamp to the tile first so the integer conversions below are exact.
     let lo = (p.mean2d.x - dx_hi - 0.5).clamp(r[0] as f32, r[2] as f32);
@@ -258,8 +256,6 @@ pub fn rasterize(
                 last: [0.0; TILE_PIXELS],
             };
             let npix = (rect[2] - rect[0]) * (rect[3] - rect[1]);
-            // 1.0 once a pixel's transmittance would drop below TRANSMITTANCE_MIN.
-            let mut done = [0.0f32; TILE_PIXELS];
             let mut ndone = 0u32;
             // Pixels still compositing in each row, so finished rows are skipped whole.
             let mut row_live = [rect[2] - rect[0]; TILE as usize];
@@ -276,23 +272,23 @@ pub fn rasterize(
                     }
                     for_each_lanes(p, py, &rect, |lanes| {
                         let l = lanes.l;
-                        let not_done = ld(&done, l).cmp_eq(Lanes::ZERO);
-                        let Some((alpha, _, valid)) = lane_alpha(p, lanes, not_done) else { return };
+                        // A finished pixel keeps its transmittance negated (see below).
                         let t_now = ld(&res.t, l);
+                        let not_done = t_now.cmp_gt(Lanes::ZERO);
+                        let Some((alpha, _, valid)) = lane_alpha(p, lanes, not_done) else { return };
                         let t_next = t_now * (Lanes::ONE - alpha);
                         let term = valid & t_next.cmp_lt(Lanes::splat(TRANSMITTANCE_MIN));
                         let contrib = valid & !term;
                         let finished = term.move_mask().count_ones();
                         ndone += finished;
                         row_live[row] -= finished;
-                        let done_now = ld(&done, l);
-                        st(&mut done, l, term.blend(Lanes::ONE, done_now));
                         let w = contrib.blend(alpha * t_now, Lanes::ZERO);
                         for (acc, c) in res.color.iter_mut().zip([cr, cg, cb]) {
                             add(acc, l, c * w);
                         }
                         add(&mut res.depth, l, z * w);
-                        st(&mut res.t, l, contrib.blend(t_next, t_now));
+                        // Finished pixels store -T: the sign is the "done" flag, |T| the result.
+                        st(&mut res.t, l, contrib.blend(t_next, term.blend(-t_now, t_now)));
                         let last_now = ld(&res.last, l);
                         st(&mut res.last, l, contrib.blend(k_next, last_now));
                     });
@@ -319,7 +315,7 @@ pub fn rasterize(
             for px in r[0]..r[2] {
                 let l = ((py - r[1]) * TILE + (px - r[0])) as usize;
                 let o = (py * width + px) as usize;
-                let tl = res.t[l];
+                let tl = res.t[l].abs();
                 for c in 0..3 {
                     out.color[3 * o + c] = res.color[c][l] + background[c] * tl;
                 }
