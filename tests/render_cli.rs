@@ -1,0 +1,87 @@
+//! `aim render`: a PLY and a camera file in, the same image the library renders
+//! out; bad camera and PLY files fail with the file named and a non-zero exit.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use aim::camera::{Camera, CameraFile};
+use aim::render::{render, RenderOptions};
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("aim-render-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+fn aim_render(ply: &Path, camera: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_aim"))
+        .args(["--log", "error", "render"])
+        .arg(ply)
+        .arg("--camera")
+        .arg(camera)
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .expect("aim runs")
+}
+
+fn write_camera(path: &Path, cam: &CameraFile) {
+    std::fs::write(path, serde_json::to_string(cam).expect("json")).expect("write");
+}
+
+#[test]
+fn render_command_writes_the_library_render() {
+    let dir = tmp("ok");
+    let gs = aim::bench::random_scene(3000, 11);
+    let ply = dir.join("scene.ply");
+    aim::splat::ply::write_ply(&ply, &gs).expect("written");
+    let cam = aim::bench::bench_camera(64);
+    let cam_path = dir.join("camera.json");
+    write_camera(&cam_path, &CameraFile::from_camera(&cam));
+    let out = dir.join("image.png");
+    let o = aim_render(&ply, &cam_path, &out, &["--background", "0.2,0.4,0.6"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let img = image::open(&out).expect("png").into_rgb8();
+    let expected = render(&gs, &cam, &RenderOptions { background: glam::Vec3::new(0.2, 0.4, 0.6), sh_degree: None });
+    assert_eq!(img, expected.to_rgb8());
+    // The camera file round-trips through the loader.
+    assert_eq!(Camera::load_json(&cam_path).expect("loads"), cam);
+}
+
+#[test]
+fn bad_camera_and_ply_files_name_the_file() {
+    let dir = tmp("bad");
+    let gs = aim::bench::random_scene(100, 1);
+    let ply = dir.join("scene.ply");
+    aim::splat::ply::write_ply(&ply, &gs).expect("written");
+    let good = CameraFile::from_camera(&aim::bench::bench_camera(32));
+    let out = dir.join("image.png");
+
+    let mut singular = good.clone();
+    singular.world_to_camera[1] = [0.0, 0.0, 0.0, 0.0];
+    let p = dir.join("singular.json");
+    write_camera(&p, &singular);
+    let o = aim_render(&ply, &p, &out, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("singular.json") && err.contains("rigid"), "{err}");
+
+    let mut empty = good.clone();
+    empty.width = 0;
+    let p = dir.join("empty.json");
+    write_camera(&p, &empty);
+    let o = aim_render(&ply, &p, &out, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("empty.json") && err.contains("positive"), "{err}");
+
+    let cam = dir.join("camera.json");
+    write_camera(&cam, &good);
+    let bytes = std::fs::read(&ply).expect("read");
+    let truncated = dir.join("truncated.ply");
+    std::fs::write(&truncated, &bytes[..bytes.len() - 10]).expect("write");
+    let o = aim_render(&truncated, &cam, &out, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("truncated.ply"), "{err}");
+    assert!(!out.exists(), "no output on failure");
+}
