@@ -11,5 +11,6 @@ pub mod render;
 pub mod splat;
 pub mod synth;
 pub mod train;
+pub mod viz;
 
 pub use error::{Error, Result};

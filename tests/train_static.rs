@@ -10,6 +10,7 @@ use std::sync::atomic::AtomicBool;
 use aim::synth::dataset::{write_dataset, SynthConfig};
 use aim::train::config::StaticConfig;
 use aim::train::static_stage::{evaluate, run_static, RunOutcome};
+use aim::viz::{Viz, VizTarget};
 use aim_capture::dataset::{load_aim_transforms, LoadOptions};
 use aim_capture::Phase;
 
@@ -69,26 +70,32 @@ fn interrupted_run_resumes_to_the_uninterrupted_result_and_outputs_reload() {
     let (train, test) = (views(&data, "transforms_train.json"), views(&data, "transforms_test.json"));
     let cfg = small_config();
     let never = AtomicBool::new(false);
+    // The uninterrupted run also logs to rerun; logging must not change the result.
+    let rrd = root.join("full.rrd");
+    let viz = Viz::new("aim-test", &VizTarget::File(rrd.clone())).expect("rrd opens");
 
     // Before training: random initial Gaussians render poorly.
     let init = aim::train::static_stage::GaussianTrainer::new(cfg.clone(), &train, None).expect("trainer");
     let psnr_init = evaluate(&init.gaussians, &test, glam::Vec3::ONE).iter().map(|m| m.psnr).sum::<f32>() / 3.0;
 
-    let full =
-        finished(run_static(cfg.clone(), &train, &test, &root.join("full"), false, &never, |_| {}).expect("runs"));
+    let full = finished(
+        run_static(cfg.clone(), &train, &test, &root.join("full"), false, &never, &viz, |_| {}).expect("runs"),
+    );
     assert!(full.mean_psnr > psnr_init + 5.0, "training should help: {psnr_init} -> {}", full.mean_psnr);
 
     // Interrupt after iteration 100 (between a densification and an opacity reset), then resume.
     let stop = AtomicBool::new(false);
-    let out = run_static(cfg.clone(), &train, &test, &root.join("split"), false, &stop, |r| {
+    let out = run_static(cfg.clone(), &train, &test, &root.join("split"), false, &stop, &Viz::disabled(), |r| {
         if r.iteration == 100 {
             stop.store(true, std::sync::atomic::Ordering::SeqCst);
         }
     })
     .expect("runs");
     assert!(matches!(out, RunOutcome::Interrupted(100)));
-    let resumed =
-        finished(run_static(cfg.clone(), &train, &test, &root.join("split"), true, &never, |_| {}).expect("resumes"));
+    let resumed = finished(
+        run_static(cfg.clone(), &train, &test, &root.join("split"), true, &never, &Viz::disabled(), |_| {})
+            .expect("resumes"),
+    );
     assert!((resumed.mean_psnr - full.mean_psnr).abs() < 0.2, "{} vs {}", resumed.mean_psnr, full.mean_psnr);
     let a = aim::splat::ply::read_ply(&root.join("full").join("static.ply")).expect("reads");
     let b = aim::splat::ply::read_ply(&root.join("split").join("static.ply")).expect("reads");
@@ -107,6 +114,16 @@ fn interrupted_run_resumes_to_the_uninterrupted_result_and_outputs_reload() {
         .expect("python3 runs");
     assert!(py.status.success(), "plyfile failed: {}", String::from_utf8_lossy(&py.stderr));
     assert_eq!(String::from_utf8_lossy(&py.stdout).trim(), a.len().to_string());
+    // The rerun log is a valid recording (checked by rerun's own CLI from the python SDK)
+    // holding the training scalars, the Gaussians and the cameras.
+    drop(viz);
+    let verify = Command::new("rerun").args(["rrd", "verify"]).arg(&rrd).output().expect("rerun CLI runs");
+    assert!(verify.status.success(), "rerun rrd verify: {}", String::from_utf8_lossy(&verify.stderr));
+    let print = Command::new("rerun").args(["rrd", "print", "--verbose"]).arg(&rrd).output().expect("rerun CLI runs");
+    let listing = String::from_utf8_lossy(&print.stdout);
+    for entity in ["/train/loss", "/world/gaussians", "/world/train_cameras/000", "/eval/render"] {
+        assert!(listing.contains(entity), "{entity} missing from the recording");
+    }
     // The run folder has everything the CLI promises.
     for f in ["config.toml", "metrics.json", "checkpoint.bin", "test/000.png"] {
         assert!(root.join("full").join(f).exists(), "missing {f}");

@@ -23,6 +23,8 @@ pub struct Args {
     pub out: PathBuf,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    #[command(flatten)]
+    pub rerun: super::train_static::RerunArgs,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -48,7 +50,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}").expect("template"),
     );
     let never = AtomicBool::new(false);
-    let outcome = run_static(train_cfg, &train, &test, &args.out.join("static"), false, &never, |r| {
+    let viz = args.rerun.open()?;
+    let outcome = run_static(train_cfg, &train, &test, &args.out.join("static"), false, &never, &viz, |r| {
         bar.set_position(u64::from(r.iteration));
         if r.iteration % 20 == 0 {
             bar.set_message(format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians));

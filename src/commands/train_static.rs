@@ -35,6 +35,30 @@ pub struct Args {
     /// Override the iteration count.
     #[arg(long)]
     pub iterations: Option<u32>,
+    #[command(flatten)]
+    pub rerun: RerunArgs,
+}
+
+/// Where to send the rerun log (none by default).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct RerunArgs {
+    /// Save a rerun recording of the run (.rrd; open with `rerun FILE`).
+    #[arg(long, value_name = "FILE.rrd")]
+    pub rrd: Option<PathBuf>,
+    /// Stream to a running rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy.
+    #[arg(long, value_name = "URL", conflicts_with = "rrd")]
+    pub rerun_connect: Option<String>,
+}
+
+impl RerunArgs {
+    pub fn open(&self) -> anyhow::Result<aim::viz::Viz> {
+        let target = match (&self.rrd, &self.rerun_connect) {
+            (Some(p), _) => aim::viz::VizTarget::File(p.clone()),
+            (None, Some(url)) => aim::viz::VizTarget::Connect(url.clone()),
+            (None, None) => aim::viz::VizTarget::Off,
+        };
+        Ok(aim::viz::Viz::new("aim", &target)?)
+    }
 }
 
 pub fn resolve_config(args: &Args) -> anyhow::Result<StaticConfig> {
@@ -104,7 +128,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .expect("valid template"),
     );
     let mut ema_psnr = 0.0f32;
-    let outcome = run_static(cfg, &train, &test, &args.out, args.resume, &interrupt, |r| {
+    let viz = args.rerun.open()?;
+    let outcome = run_static(cfg, &train, &test, &args.out, args.resume, &interrupt, &viz, |r| {
         ema_psnr = if ema_psnr == 0.0 { r.psnr } else { 0.9 * ema_psnr + 0.1 * r.psnr };
         bar.set_position(u64::from(r.iteration));
         if r.iteration % 10 == 0 {

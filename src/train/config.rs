@@ -78,6 +78,9 @@ pub struct StaticConfig {
     pub eval_background: [f32; 3],
     /// Write a checkpoint every this many iterations (0 = only at the end and on Ctrl-C).
     pub checkpoint_interval: u32,
+    /// Log the Gaussians and an evaluation render to rerun every this many iterations
+    /// (scalars are logged every 10); only when a rerun target is given.
+    pub viz_interval: u32,
     pub lr: LrConfig,
     pub density: DensityConfig,
     pub init: InitConfig,
@@ -97,6 +100,7 @@ impl StaticConfig {
             random_background: true,
             eval_background: [1.0, 1.0, 1.0],
             checkpoint_interval: 2000,
+            viz_interval: 500,
             lr: LrConfig {
                 means_init: 1.6e-4,
                 means_final: 1.6e-6,
@@ -130,6 +134,7 @@ impl StaticConfig {
         c.iterations = 3000;
         c.resolution = 256;
         c.checkpoint_interval = 500;
+        c.viz_interval = 250;
         c.density.from_iter = 300;
         c.density.until_iter = 2400;
         c.density.interval = 100;

@@ -23,6 +23,7 @@ use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr, ssim};
 use crate::train::optim::{Adam, ExponLr, LearningRates};
 use crate::train::views::{camera_extent, TrainView};
+use crate::viz::Viz;
 
 /// Opacity cap applied by the periodic reset (3DGS value).
 const OPACITY_RESET_VALUE: f32 = 0.01;
@@ -292,9 +293,27 @@ pub enum RunOutcome {
     Interrupted(u32),
 }
 
+/// Log the training state to rerun: the Gaussians and the first evaluation view
+/// rendered beside its target.
+fn log_state(viz: &Viz, trainer: &GaussianTrainer, eval: &TrainView) {
+    if !viz.is_enabled() {
+        return;
+    }
+    viz.set_iteration(trainer.iteration);
+    viz.gaussians("world/gaussians", &trainer.gaussians);
+    let bg = Vec3::from(trainer.config.eval_background);
+    let r = render(&trainer.gaussians, &eval.camera, &RenderOptions { background: bg, sh_degree: None });
+    viz.camera("world/eval_camera", &eval.camera);
+    viz.image_rgb("world/eval_camera/render", r.width, r.height, &r.image.color);
+    viz.image_rgb("eval/target", r.width, r.height, &eval.target(bg));
+    viz.image_rgb("eval/render", r.width, r.height, &r.image.color);
+}
+
 /// Train stage I into `run_dir`: resume from its checkpoint if asked, checkpoint
-/// every `checkpoint_interval` iterations and when `interrupt` is raised, and on
-/// completion write static.ply, config.toml, test renders and metrics.json.
+/// every `checkpoint_interval` iterations and when `interrupt` is raised, log to
+/// `viz`, and on completion write static.ply, config.toml, test renders and
+/// metrics.json.
+#[allow(clippy::too_many_arguments)]
 pub fn run_static(
     config: StaticConfig,
     train: &[TrainView],
@@ -302,6 +321,7 @@ pub fn run_static(
     run_dir: &Path,
     resume: bool,
     interrupt: &AtomicBool,
+    viz: &Viz,
     mut progress: impl FnMut(&StepReport),
 ) -> Result<RunOutcome> {
     std::fs::create_dir_all(run_dir).map_err(|e| Error::io(run_dir, e))?;
@@ -322,6 +342,14 @@ pub fn run_static(
     let toml_text = toml::to_string(&config).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&paths.config(), toml_text.as_bytes())?;
 
+    let eval_views = if test.is_empty() { train } else { test };
+    if viz.is_enabled() {
+        viz.set_iteration(trainer.iteration);
+        for (i, v) in train.iter().enumerate() {
+            viz.camera(&format!("world/train_cameras/{i:03}"), &v.camera);
+        }
+        log_state(viz, &trainer, &eval_views[0]);
+    }
     let start = Instant::now();
     while trainer.iteration < config.iterations {
         if interrupt.load(Ordering::SeqCst) {
@@ -336,6 +364,15 @@ pub fn run_static(
             )));
         }
         progress(&report);
+        if viz.is_enabled() && report.iteration % 10 == 0 {
+            viz.set_iteration(report.iteration);
+            viz.scalar("train/loss", f64::from(report.loss));
+            viz.scalar("train/psnr", f64::from(report.psnr));
+            viz.scalar("train/gaussians", report.gaussians as f64);
+        }
+        if config.viz_interval > 0 && report.iteration % config.viz_interval == 0 {
+            log_state(viz, &trainer, &eval_views[0]);
+        }
         if config.checkpoint_interval > 0 && trainer.iteration % config.checkpoint_interval == 0 {
             save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before + start.elapsed().as_secs_f64())?;
         }
@@ -344,7 +381,6 @@ pub fn run_static(
     save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before)?;
     crate::splat::ply::write_ply(&paths.static_ply(), &trainer.gaussians)?;
 
-    let eval_views = if test.is_empty() { train } else { test };
     let metrics = trainer.evaluate(eval_views);
     std::fs::create_dir_all(paths.test_dir()).map_err(|e| Error::io(paths.test_dir(), e))?;
     let bg = Vec3::from(config.eval_background);
@@ -370,5 +406,8 @@ pub fn run_static(
     };
     let json = serde_json::to_vec_pretty(&summary).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&paths.metrics(), &json)?;
+    log_state(viz, &trainer, &eval_views[0]);
+    viz.scalar("eval/mean_psnr", f64::from(summary.mean_psnr));
+    viz.flush();
     Ok(RunOutcome::Finished(Box::new(summary)))
 }
