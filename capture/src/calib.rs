@@ -313,6 +313,19 @@ pub struct CameraCalibration {
     /// Largest field angle (radians from the optical axis) that is considered valid;
     /// projections beyond it are rejected (the polynomial is not calibrated there).
     pub max_theta: f64,
+    /// Radius (pixels, at this resolution) around the image centre ((W-1)/2, (H-1)/2)
+    /// outside which pixels are not valid (projectaria_tools' valid radius: the lens's
+    /// image circle). None: the whole image.
+    pub valid_radius: Option<f64>,
+}
+
+/// Valid image-circle radius of Aria cameras at native resolution (projectaria_tools
+/// uses 1415 px for the 2880 px RGB sensor: 707.5 px at 1408).
+pub fn aria_valid_radius(label: &str) -> Option<f64> {
+    match label {
+        "camera-rgb" => Some(1415.0),
+        _ => None,
+    }
 }
 
 /// Native sensor size for Aria cameras, which calib_json does not store.
@@ -339,9 +352,13 @@ impl CameraCalibration {
         self.is_visible(px).then_some(px)
     }
 
-    /// Pixel inside the image (projectaria convention: [-0.5, W - 0.5)).
+    /// Pixel inside the image (projectaria convention: [-0.5, W - 0.5)) and inside the
+    /// valid radius, if any.
     pub fn is_visible(&self, px: DVec2) -> bool {
-        px.x >= -0.5 && px.y >= -0.5 && px.x < self.width as f64 - 0.5 && px.y < self.height as f64 - 0.5
+        let inside = px.x >= -0.5 && px.y >= -0.5 && px.x < self.width as f64 - 0.5 && px.y < self.height as f64 - 0.5;
+        let (cx, cy) = self.model.principal_point();
+        let centre = DVec2::new(cx, cy);
+        inside && self.valid_radius.is_none_or(|r| (px - centre).length_squared() <= r * r)
     }
 
     pub fn unproject(&self, px: DVec2) -> Option<DVec3> {
@@ -369,7 +386,13 @@ impl CameraCalibration {
         let k = kx as f64;
         let offset =
             DVec2::new((self.width as f64 - k * width as f64) / 2.0, (self.height as f64 - k * height as f64) / 2.0);
-        Ok(CameraCalibration { model: self.model.crop_and_scale(offset, 1.0 / k), width, height, ..self.clone() })
+        Ok(CameraCalibration {
+            model: self.model.crop_and_scale(offset, 1.0 / k),
+            width,
+            height,
+            valid_radius: self.valid_radius.map(|r| r / k),
+            ..self.clone()
+        })
     }
 
     /// Pinhole intrinsics in the library's pixel convention (centres at i + 0.5), for
@@ -398,6 +421,7 @@ impl CameraCalibration {
             height,
             t_device_camera: self.t_device_camera,
             max_theta: std::f64::consts::FRAC_PI_2,
+            valid_radius: None,
         }
     }
 
@@ -455,7 +479,16 @@ pub fn parse_camera(v: &serde_json::Value) -> std::result::Result<CameraCalibrat
         let (cx, cy) = model.principal_point();
         ((2.0 * cx + 1.0).round().max(1.0) as u32, (2.0 * cy + 1.0).round().max(1.0) as u32)
     });
-    Ok(CameraCalibration { label, model, width, height, t_device_camera, max_theta: default_max_theta(&params, name) })
+    let valid_radius = aria_valid_radius(&label);
+    Ok(CameraCalibration {
+        label,
+        model,
+        width,
+        height,
+        t_device_camera,
+        max_theta: default_max_theta(&params, name),
+        valid_radius,
+    })
 }
 
 /// Aria's RGB lens covers about 110 degrees diagonally; beyond ~ 1.2 rad the distortion
@@ -628,6 +661,7 @@ mod tests {
             height: 2880,
             t_device_camera: Se3::IDENTITY,
             max_theta: 1.4,
+            valid_radius: None,
         };
         let r = cal.rescaled_to(1408, 1408).unwrap();
         let (f, _) = r.model.focal();
@@ -646,6 +680,7 @@ mod tests {
             height: 680,
             t_device_camera: Se3::IDENTITY,
             max_theta: 1.5,
+            valid_radius: None,
         };
         let rot = cal.rotated_cw90().unwrap();
         let p_dev = DVec3::new(0.1, -0.3, 1.2);

@@ -185,6 +185,7 @@ mod tests {
             height: w,
             t_device_camera: Se3::IDENTITY,
             max_theta: 1.5,
+            valid_radius: None,
         }
     }
 

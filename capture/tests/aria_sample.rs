@@ -45,6 +45,7 @@ fn calibration_is_fisheye624_at_1408() {
     let (cx, cy) = cal.model.principal_point();
     assert!((f - 607.0).abs() < 0.5, "f = {f}");
     assert!((cx - 718.5).abs() < 0.5 && (cy - 703.0).abs() < 0.5, "c = ({cx}, {cy})");
+    assert_eq!(cal.valid_radius, Some(707.5));
     // T_Device_Camera of the RGB camera: a few mm from the device origin.
     assert!(cal.t_device_camera.translation.length() < 0.05);
 }
@@ -70,4 +71,52 @@ fn adt_video_vrs_opens() {
     let f = rec.read_frame(0).unwrap();
     assert!(decode_jpeg(&f.jpeg).is_ok());
     assert!(rec.rgb_calibration().is_ok());
+}
+
+/// Reference produced with projectaria_tools (PyPI projectaria-tools, Python):
+/// `lin = calibration.get_linear_camera_calibration(512, 512, 150, "camera-rgb", T_device_camera)`,
+/// `distort_by_calibration(frame3, lin, rgb_calib)` on recording.vrs; saved as PNG.
+#[test]
+fn undistortion_matches_projectaria_tools() {
+    let mut rec = AriaRecording::open(sample("aria_everyday_activities_test_data/recording.vrs")).unwrap();
+    let cal = rec.rgb_calibration().unwrap();
+    let f3 = rec.read_frame(3).unwrap();
+    assert_eq!(f3.capture_timestamp_ns, 86_535_221_450, "projectaria_tools' capture_timestamp_ns of frame 3");
+    let map = UndistortMap::new(&cal, &UndistortConfig { width: 512, height: 512, focal: 150.0, upright: false });
+    let ours = map.apply_rgb(&decode_jpeg(&f3.jpeg).unwrap()).unwrap();
+    let refp = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/projectaria_undistort_frame3_512_f150.png");
+    let reference = image::open(refp).unwrap().to_rgb8();
+    let (mut valid_mismatch, mut sum, mut n, mut max) = (0usize, 0u64, 0u64, 0u8);
+    for (o, r) in ours.pixels().zip(reference.pixels()) {
+        let ref_valid = r.0 != [0, 0, 0];
+        if ref_valid != (o.0[3] == 255) {
+            valid_mismatch += 1;
+        }
+        if ref_valid && o.0[3] == 255 {
+            for c in 0..3 {
+                let d = o.0[c].abs_diff(r.0[c]);
+                sum += d as u64;
+                n += 1;
+                max = max.max(d);
+            }
+        }
+    }
+    let mean = sum as f64 / n as f64;
+    // Same valid region (image circle of radius 707.5 px around the principal point);
+    // values differ only by JPEG decoder and bilinear rounding.
+    assert!(valid_mismatch <= 16, "{valid_mismatch} pixels differ in validity");
+    assert!(mean < 1.0 && max <= 8, "mean {mean}, max {max}");
+}
+
+#[test]
+fn projection_matches_projectaria_tools() {
+    let rec = AriaRecording::open(sample("aria_everyday_activities_test_data/recording.vrs")).unwrap();
+    let cal = rec.rgb_calibration().unwrap();
+    // projectaria_tools CameraCalibration.project_no_checks at 1408 px.
+    for (p, want) in
+        [([0.3, -0.2, 1.0], [900.56390094, 581.58708393]), ([-0.9, 0.7, 1.1], [272.05146597, 1049.45161001])]
+    {
+        let got = cal.model.project(glam::DVec3::from_array(p)).unwrap();
+        assert!((got.x - want[0]).abs() < 1e-6 && (got.y - want[1]).abs() < 1e-6, "{got} vs {want:?}");
+    }
 }

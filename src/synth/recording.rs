@@ -328,6 +328,7 @@ pub fn aria_rgb_native() -> CameraCalibration {
         height: 2880,
         t_device_camera: Se3::new(DQuat::from_xyzw(q[1], q[2], q[3], q[0]), DVec3::from_array(t)),
         max_theta: 1.4,
+        valid_radius: aim_capture::calib::aria_valid_radius("camera-rgb"),
     }
 }
 
