@@ -75,12 +75,12 @@ impl Processor {
     pub fn process(&self, raw: RawFrame) -> Result<Processed, Skip> {
         let label = raw.label.clone();
         let rgba: image::RgbaImage = match raw.image {
-            RawImage::Ready(f) => {
-                let f = *f;
+            RawImage::Ready { frame, phase_given } => {
+                let f = *frame;
                 return Ok(Processed {
                     timestamp_ns: raw.timestamp_ns,
                     t_world_device: None,
-                    given_phase: Some(f.phase),
+                    given_phase: phase_given.then_some(f.phase),
                     posed: true,
                     frame: f,
                 });

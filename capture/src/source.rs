@@ -18,8 +18,12 @@ pub enum RawImage {
     /// Any encoded image file's bytes (PNG, JPEG, ...), decoded with the `image` crate.
     Encoded(Vec<u8>),
     Rgb(image::RgbImage),
-    /// A frame that is already undistorted and posed (datasets); passed through.
-    Ready(Box<Frame>),
+    /// A frame that is already undistorted and posed (datasets); passed through. With
+    /// `phase_given` its phase is kept, otherwise it is detected like any other frame.
+    Ready {
+        frame: Box<Frame>,
+        phase_given: bool,
+    },
 }
 
 /// A frame before decoding and undistortion.
@@ -200,12 +204,43 @@ pub struct DatasetSource {
     name: String,
     frames: std::vec::IntoIter<Frame>,
     len: usize,
+    phase_given: bool,
 }
 
 impl DatasetSource {
+    /// Frames whose phases are known (AiM layout: start/motion/end folders).
     pub fn from_frames(name: impl Into<String>, frames: Vec<Frame>) -> Self {
         let len = frames.len();
-        DatasetSource { name: name.into(), frames: frames.into_iter(), len }
+        DatasetSource { name: name.into(), frames: frames.into_iter(), len, phase_given: true }
+    }
+
+    /// Posed frames without phases (nerfstudio, COLMAP): the detector decides them.
+    pub fn from_frames_undetected(name: impl Into<String>, frames: Vec<Frame>) -> Self {
+        DatasetSource { phase_given: false, ..Self::from_frames(name, frames) }
+    }
+
+    /// A nerfstudio folder (transforms.json). Per-frame lens distortion, if any, is not
+    /// removed here: the loader reports it and frames are used as they are.
+    pub fn nerfstudio(path: &Path) -> Result<Self> {
+        let ds = crate::dataset::load_nerfstudio(path, &crate::dataset::LoadOptions { depth: false })?;
+        if ds.distortion.iter().any(|d| !matches!(d, crate::dataset::Distortion::None)) {
+            tracing::warn!("{}: frames have lens distortion; used without undistortion", path.display());
+        }
+        Ok(Self::from_frames_undetected(path.display().to_string(), ds.frames))
+    }
+
+    /// A COLMAP model (`sparse/0` or `sparse`) with its `images/` folder.
+    pub fn colmap(root: &Path) -> Result<Self> {
+        let model = [root.join("sparse/0"), root.join("sparse")]
+            .into_iter()
+            .find(|p| p.join("cameras.bin").exists() || p.join("cameras.txt").exists())
+            .ok_or_else(|| Error::bad_file(root, "no COLMAP model in sparse/0 or sparse"))?;
+        let (_, frames) = crate::dataset::load_colmap_frames(
+            &model,
+            &root.join("images"),
+            &crate::dataset::LoadOptions { depth: false },
+        )?;
+        Ok(Self::from_frames_undetected(root.display().to_string(), frames))
     }
 
     /// An AiM-layout dataset: start, motion and end training frames in that order, on
@@ -237,7 +272,7 @@ impl FrameSource for DatasetSource {
             index: f.index,
             timestamp_ns: (f.timestamp_s * 1e9).round() as i64,
             label: f.source.clone(),
-            image: RawImage::Ready(Box::new(f)),
+            image: RawImage::Ready { frame: Box::new(f), phase_given: self.phase_given },
         }))
     }
 }
@@ -292,11 +327,19 @@ impl FrameSource for RepeatSource {
 }
 
 /// Open a recording by what it is: a `.vrs` file, an AiM dataset folder (has
-/// `start/transforms_train.json`), or a folder of images.
+/// `start/transforms_train.json`), a nerfstudio folder (`transforms.json`), a COLMAP
+/// folder (`sparse/` + `images/`), a synthetic Aria-like recording (`frames/`), a folder
+/// of images, or (feature `video`) a video file.
 pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>> {
     if path.is_dir() {
         if path.join("start").join("transforms_train.json").exists() {
             return Ok(Box::new(DatasetSource::aim(path)?));
+        }
+        if path.join("transforms.json").exists() {
+            return Ok(Box::new(DatasetSource::nerfstudio(path)?));
+        }
+        if path.join("sparse").is_dir() && path.join("images").is_dir() {
+            return Ok(Box::new(DatasetSource::colmap(path)?));
         }
         // A synthetic Aria-like recording: frames/ + calibration.json.
         let frames = path.join("frames");
