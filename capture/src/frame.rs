@@ -26,14 +26,7 @@ impl Intrinsics {
     /// square pixels, principal point at the image centre.
     pub fn from_fov_x(width: u32, height: u32, camera_angle_x: f32) -> Self {
         let fx = 0.5 * width as f32 / (0.5 * camera_angle_x).tan();
-        Self {
-            width,
-            height,
-            fx,
-            fy: fx,
-            cx: 0.5 * width as f32,
-            cy: 0.5 * height as f32,
-        }
+        Self { width, height, fx, fy: fx, cx: 0.5 * width as f32, cy: 0.5 * height as f32 }
     }
 
     /// Horizontal field of view in radians (inverse of [`Intrinsics::from_fov_x`]).
@@ -45,14 +38,7 @@ impl Intrinsics {
     pub fn scaled(&self, width: u32, height: u32) -> Self {
         let sx = width as f32 / self.width as f32;
         let sy = height as f32 / self.height as f32;
-        Self {
-            width,
-            height,
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: self.cx * sx,
-            cy: self.cy * sy,
-        }
+        Self { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy }
     }
 
     /// Unit-depth direction (camera frame) through the continuous pixel coordinate (u, v).
