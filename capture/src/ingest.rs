@@ -51,12 +51,22 @@ pub struct IngestConfig {
     pub threads: usize,
     /// Consecutive unreadable frames after which the source is declared broken.
     pub max_consecutive_errors: usize,
+    /// Hand frames over no faster than they were recorded (replaying a file as if it were
+    /// live, e.g. for the live preview): frame k is released at start + (t_k - t_0).
+    pub realtime: bool,
 }
 
 impl Default for IngestConfig {
     fn default() -> Self {
         let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2).min(8);
-        IngestConfig { policy: Policy::Replay, capacity: 16, batch: 2 * threads, threads, max_consecutive_errors: 16 }
+        IngestConfig {
+            policy: Policy::Replay,
+            capacity: 16,
+            batch: 2 * threads,
+            threads,
+            max_consecutive_errors: 16,
+            realtime: false,
+        }
     }
 }
 
@@ -195,7 +205,18 @@ impl Ingest {
         let (q, st, c) = (queue.clone(), stop.clone(), counters.clone());
         let handle = std::thread::Builder::new().name("aim-ingest".into()).spawn(move || {
             let policy = cfg.policy;
-            let send = |m: Message| q.push(m, policy, &c);
+            // Realtime pacing: (first frame's timestamp, when it was handed over).
+            let mut t0: Option<(f64, std::time::Instant)> = None;
+            let send = |m: Message, t0: &mut Option<(f64, std::time::Instant)>| {
+                if let (true, Message::Frame(f)) = (cfg.realtime, &m) {
+                    let (first, started) = *t0.get_or_insert((f.timestamp_s, std::time::Instant::now()));
+                    let due = std::time::Duration::from_secs_f64((f.timestamp_s - first).max(0.0));
+                    if let Some(wait) = due.checked_sub(started.elapsed()) {
+                        std::thread::sleep(wait);
+                    }
+                }
+                q.push(m, policy, &c)
+            };
             let mut consecutive_errors = 0usize;
             'outer: loop {
                 if st.load(Ordering::Relaxed) {
@@ -219,10 +240,13 @@ impl Ingest {
                             consecutive_errors += 1;
                             tracing::warn!("skipping unreadable frame: {e}");
                             if consecutive_errors > cfg.max_consecutive_errors {
-                                send(Message::Error(Error::Other(format!(
-                                    "{}: {consecutive_errors} unreadable frames in a row, giving up; last: {e}",
-                                    source.describe()
-                                ))));
+                                send(
+                                    Message::Error(Error::Other(format!(
+                                        "{}: {consecutive_errors} unreadable frames in a row, giving up; last: {e}",
+                                        source.describe()
+                                    ))),
+                                    &mut t0,
+                                );
                                 break 'outer;
                             }
                         }
@@ -235,12 +259,12 @@ impl Ingest {
                             consecutive_errors = 0;
                             let (frames, ev) = tagger.push(p);
                             if let Some(ev) = ev {
-                                if !send(Message::Event(ev)) {
+                                if !send(Message::Event(ev), &mut t0) {
                                     break 'outer;
                                 }
                             }
                             for f in frames {
-                                if !send(Message::Frame(f)) {
+                                if !send(Message::Frame(f), &mut t0) {
                                     break 'outer;
                                 }
                             }
@@ -257,7 +281,7 @@ impl Ingest {
                 }
                 if end {
                     for f in tagger.flush() {
-                        if !send(Message::Frame(f)) {
+                        if !send(Message::Frame(f), &mut t0) {
                             break;
                         }
                     }

@@ -105,3 +105,24 @@ fn missing_file_is_an_error_naming_it() {
     let e = VrsSource::open("/nonexistent/rec.vrs").err().unwrap();
     assert!(e.to_string().contains("/nonexistent/rec.vrs"));
 }
+
+#[test]
+fn realtime_replay_paces_frames_at_the_recorded_rate() {
+    let (src, p) = setup(1); // 8 frames, 50 ms apart: 350 ms span
+    let cfg = IngestConfig { realtime: true, ..IngestConfig::default() };
+    let t = std::time::Instant::now();
+    let ingest = Ingest::spawn(src, p, PhaseTagger::none(), cfg).unwrap();
+    let mut arrivals = Vec::new();
+    for m in &ingest {
+        if let Message::Frame(f) = m {
+            arrivals.push((t.elapsed().as_secs_f64(), f.timestamp_s));
+        }
+    }
+    assert_eq!(arrivals.len(), 8);
+    let (a0, t0) = arrivals[0];
+    for &(a, ts) in &arrivals {
+        // Never early relative to the recording's clock.
+        assert!(a - a0 >= (ts - t0) - 0.02, "frame at {ts} arrived {a}");
+    }
+    assert!(arrivals[7].0 - a0 >= 0.33);
+}
