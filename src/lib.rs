@@ -7,6 +7,8 @@
 pub mod bench;
 pub mod camera;
 pub mod error;
+pub mod eval;
+pub mod motion;
 pub mod render;
 pub mod splat;
 pub mod synth;
