@@ -161,3 +161,52 @@ pub fn render_bench(sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<Rend
     }
     rows
 }
+
+#[derive(Debug, Serialize)]
+pub struct DeformBenchRow {
+    pub depth: usize,
+    pub width: usize,
+    pub points: usize,
+    pub forward_ms: f64,
+    pub forward_backward_ms: f64,
+    /// Multiply-adds x 2 of forward + backward (3 GEMMs per layer) per second.
+    pub gflops: f64,
+}
+
+/// Time the deformation network's forward and forward+backward (median of `repeats`).
+pub fn deform_bench(shapes: &[(usize, usize)], counts: &[usize], repeats: usize) -> Vec<DeformBenchRow> {
+    use crate::deform::{DeformConfig, DeformNet};
+    let mut rows = Vec::new();
+    for &(depth, width) in shapes {
+        let net = DeformNet::new(DeformConfig { depth, width, ..Default::default() }, 1);
+        for &n in counts {
+            let mut rng = ChaCha8Rng::seed_from_u64(2);
+            let pts: Vec<f32> = (0..3 * n).map(|_| rng.random_range(-0.5..0.5)).collect();
+            let gx: Vec<f32> = (0..3 * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let gr: Vec<f32> = (0..4 * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let (mut f, mut fb) = (Vec::new(), Vec::new());
+            for _ in 0..repeats {
+                let t = Instant::now();
+                let out = net.forward(&pts, 0.3);
+                f.push(t.elapsed().as_secs_f64() * 1e3);
+                let t = Instant::now();
+                let out2 = net.forward(&pts, 0.3);
+                let g = net.backward(&out2.cache, &gx, &gr);
+                fb.push(t.elapsed().as_secs_f64() * 1e3);
+                std::hint::black_box((out, g));
+            }
+            let forward_backward_ms = median(fb);
+            // Forward 1 GEMM, backward 2 GEMMs per weight matrix.
+            let flops = 2.0 * 3.0 * n as f64 * net.parameter_count() as f64;
+            rows.push(DeformBenchRow {
+                depth,
+                width,
+                points: n,
+                forward_ms: median(f),
+                forward_backward_ms,
+                gflops: flops / (forward_backward_ms * 1e-3) / 1e9,
+            });
+        }
+    }
+    rows
+}

@@ -6,6 +6,7 @@
 
 pub mod bench;
 pub mod camera;
+pub mod deform;
 pub mod error;
 pub mod eval;
 pub mod motion;

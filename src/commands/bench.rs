@@ -17,6 +17,17 @@ pub enum Bench {
         #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 50_000, 200_000])]
         counts: Vec<usize>,
     },
+    /// Deformation network forward and forward+backward timings.
+    Deform {
+        /// Print JSON only.
+        #[arg(long)]
+        json: bool,
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+        /// Moving Gaussians per evaluation, comma-separated.
+        #[arg(long, value_delimiter = ',', default_values_t = [5_000usize, 20_000])]
+        counts: Vec<usize>,
+    },
     /// Ingestion throughput: 1408 x 1408 Aria JPEG decode + undistortion to 704 x 704 + detection.
     Ingest {
         /// Print JSON only.
@@ -36,6 +47,16 @@ pub enum Bench {
 
 pub fn run(b: Bench) -> anyhow::Result<()> {
     match b {
+        Bench::Deform { json, repeats, counts } => {
+            let rows = aim::bench::deform_bench(&[(8, 256), (4, 128)], &counts, repeats.max(1));
+            let report =
+                serde_json::json!({ "bench": "deform", "threads": rayon::current_num_threads(), "rows": rows });
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            }
+        }
         Bench::Ingest { json, recording, frames, threads } => {
             let recording = recording.unwrap_or_else(|| {
                 std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
