@@ -1,19 +1,19 @@
-//! The library's error type. Every error about a file names the file.
+//! The library's error type. Every error about a file names the file; file
+//! errors are the capture crate's (one definition of "this file, this problem"
+//! for the whole workspace).
 
 use std::path::PathBuf;
 
+pub use aim_capture::Error as FileError;
+
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
-    /// A file whose contents are wrong: names the file and what is wrong.
-    #[error("{path}: {message}")]
-    BadFile { path: PathBuf, message: String },
+    /// A file that cannot be read or written, or whose contents are wrong.
+    #[error(transparent)]
+    File(#[from] FileError),
     /// A configuration value or argument that is out of range or unknown.
     #[error("invalid configuration: {0}")]
     Config(String),
-    #[error(transparent)]
-    Capture(#[from] aim_capture::Error),
     #[error("{0}")]
     Other(String),
 }
@@ -22,11 +22,11 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 impl Error {
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        Error::Io { path: path.into(), source }
+        Error::File(FileError::io(path, source))
     }
 
     pub fn bad_file(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
-        Error::BadFile { path: path.into(), message: message.into() }
+        Error::File(FileError::bad_file(path, message))
     }
 }
 

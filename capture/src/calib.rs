@@ -319,6 +319,31 @@ pub struct CameraCalibration {
     pub valid_radius: Option<f64>,
 }
 
+/// Aria RGB factory calibration from the public sample recording (native 2880 px):
+/// [f, cx, cy, k0..k5, p0, p1, s0..s3].
+pub const ARIA_RGB_PARAMS: [f64; 15] = [
+    1214.025993758243,
+    1469.535869576514,
+    1438.595858396595,
+    0.4049855059199108,
+    -0.4960655170834019,
+    0.2366889743579386,
+    0.9948191490966187,
+    -1.573948083968366,
+    0.6086728193625544,
+    -0.0003672190538065101,
+    -0.0007413905358394097,
+    -0.0005839984838196491,
+    -0.0002193412417918993,
+    0.0001936268547567258,
+    -0.0002042473404798113,
+];
+/// T_Device_Camera of that RGB camera: translation (m) and quaternion (w, x, y, z).
+pub const ARIA_RGB_T_DEVICE_CAMERA: ([f64; 3], [f64; 4]) = (
+    [-0.004554731980229378, -0.01169138077305146, -0.004918788973669208],
+    [0.9433499277148367, 0.3278414140126585, 0.03839318577298367, 0.03371771677908019],
+);
+
 /// Valid image-circle radius of Aria cameras at native resolution (projectaria_tools
 /// uses 1415 px for the 2880 px RGB sensor: 707.5 px at 1408).
 pub fn aria_valid_radius(label: &str) -> Option<f64> {
@@ -580,23 +605,7 @@ mod tests {
     use super::*;
 
     pub(crate) fn sample_rgb() -> CameraModel {
-        CameraModel::Fisheye624([
-            1214.025993758243,
-            1469.535869576514,
-            1438.595858396595,
-            0.4049855059199108,
-            -0.4960655170834019,
-            0.2366889743579386,
-            0.9948191490966187,
-            -1.573948083968366,
-            0.6086728193625544,
-            -0.0003672190538065101,
-            -0.0007413905358394097,
-            -0.0005839984838196491,
-            -0.0002193412417918993,
-            0.0001936268547567258,
-            -0.0002042473404798113,
-        ])
+        CameraModel::Fisheye624(ARIA_RGB_PARAMS)
     }
 
     #[test]

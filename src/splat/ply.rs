@@ -471,7 +471,7 @@ mod tests {
 
     fn message(e: Error) -> String {
         match e {
-            Error::BadFile { path, message } => {
+            Error::File(crate::error::FileError::BadFile { path, message }) => {
                 assert_eq!(path, p());
                 message
             }
