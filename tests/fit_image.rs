@@ -62,5 +62,6 @@ fn fitting_a_target_image_reaches_30_db() {
         last_psnr = psnr(&r.image.color, &tgt);
     }
     let final_psnr = psnr(&render(&gs, &cam, &opts).image.color, &tgt);
+    eprintln!("fitting: {final_psnr:.2} dB after 400 steps");
     assert!(final_psnr > 30.0, "PSNR after 400 steps: {final_psnr:.2} dB (previous step {last_psnr:.2})");
 }
