@@ -9,7 +9,7 @@ use std::sync::atomic::AtomicBool;
 
 use aim::synth::dataset::{write_dataset, SynthConfig};
 use aim::train::config::StaticConfig;
-use aim::train::static_stage::{evaluate, run_static, RunOutcome};
+use aim::train::static_stage::{evaluate, run_static, RunOutcome, RunSetup};
 use aim::viz::{Viz, VizTarget};
 use aim_capture::dataset::{load_aim_transforms, LoadOptions};
 use aim_capture::Phase;
@@ -55,6 +55,10 @@ fn views(dataset: &Path, file: &str) -> Vec<aim::train::views::TrainView> {
     aim::train::views::views_from_frames(&frames, 0).expect("views")
 }
 
+fn setup(dir: &Path, resume: bool) -> RunSetup<'_> {
+    RunSetup { run_dir: dir, resume, init: None }
+}
+
 fn finished(outcome: RunOutcome) -> aim::train::static_stage::StaticMetrics {
     match outcome {
         RunOutcome::Finished(m) => *m,
@@ -79,21 +83,22 @@ fn interrupted_run_resumes_to_the_uninterrupted_result_and_outputs_reload() {
     let psnr_init = evaluate(&init.gaussians, &test, glam::Vec3::ONE).iter().map(|m| m.psnr).sum::<f32>() / 3.0;
 
     let full = finished(
-        run_static(cfg.clone(), &train, &test, &root.join("full"), false, &never, &viz, |_| {}).expect("runs"),
+        run_static(cfg.clone(), &train, &test, &setup(&root.join("full"), false), &never, &viz, |_| {}).expect("runs"),
     );
     assert!(full.mean_psnr > psnr_init + 5.0, "training should help: {psnr_init} -> {}", full.mean_psnr);
 
     // Interrupt after iteration 100 (between a densification and an opacity reset), then resume.
     let stop = AtomicBool::new(false);
-    let out = run_static(cfg.clone(), &train, &test, &root.join("split"), false, &stop, &Viz::disabled(), |r| {
-        if r.iteration == 100 {
-            stop.store(true, std::sync::atomic::Ordering::SeqCst);
-        }
-    })
-    .expect("runs");
+    let out =
+        run_static(cfg.clone(), &train, &test, &setup(&root.join("split"), false), &stop, &Viz::disabled(), |r| {
+            if r.iteration == 100 {
+                stop.store(true, std::sync::atomic::Ordering::SeqCst);
+            }
+        })
+        .expect("runs");
     assert!(matches!(out, RunOutcome::Interrupted(100)));
     let resumed = finished(
-        run_static(cfg.clone(), &train, &test, &root.join("split"), true, &never, &Viz::disabled(), |_| {})
+        run_static(cfg.clone(), &train, &test, &setup(&root.join("split"), true), &never, &Viz::disabled(), |_| {})
             .expect("resumes"),
     );
     assert!((resumed.mean_psnr - full.mean_psnr).abs() < 0.2, "{} vs {}", resumed.mean_psnr, full.mean_psnr);
@@ -222,4 +227,91 @@ fn bad_datasets_are_reported_with_the_file() {
     std::fs::write(&transforms, json.to_string()).expect("write");
     let e = cli_error(&data);
     assert!(e.contains("transforms_train.json") && e.contains("empty"), "{e}");
+}
+
+#[test]
+fn training_starts_from_a_given_point_cloud_in_ply_or_colmap_form() {
+    let root = tmp("init");
+    let data = root.join("data");
+    small_dataset(&data);
+    // A point cloud written by python plyfile (an independent writer): points on the
+    // storage object's ground-truth start meshes, coloured, as uchar red/green/blue.
+    let mesh_dir = data.join("gt").join("start");
+    let mut pts = Vec::new();
+    for entry in std::fs::read_dir(&mesh_dir).expect("gt meshes") {
+        let mesh = aim::synth::gt::read_obj(&entry.expect("entry").path()).expect("obj");
+        pts.extend(mesh.vertices);
+    }
+    assert!(pts.len() > 50);
+    let xyz = pts.iter().map(|p| format!("({},{},{},200,100,50)", p.x, p.y, p.z)).collect::<Vec<_>>().join(",");
+    let ply = root.join("cloud.ply");
+    let script = format!(
+        "import numpy as np, plyfile, sys\n\
+         v = np.array([{xyz}], dtype=[('x','f4'),('y','f4'),('z','f4'),('red','u1'),('green','u1'),('blue','u1')])\n\
+         plyfile.PlyData([plyfile.PlyElement.describe(v, 'vertex')]).write(sys.argv[1])"
+    );
+    let py = Command::new("python3").arg("-c").arg(&script).arg(&ply).output().expect("python3 runs");
+    assert!(py.status.success(), "{}", String::from_utf8_lossy(&py.stderr));
+    let cloud = aim::splat::ply::read_point_cloud(&ply).expect("reads");
+    assert_eq!(cloud.points.len(), pts.len());
+    assert!((cloud.points[7] - pts[7]).length() < 1e-6);
+    let c = cloud.colors.as_ref().expect("colours")[0];
+    assert!((c - glam::Vec3::new(200.0, 100.0, 50.0) / 255.0).length() < 1e-6);
+
+    // The trainer starts from exactly those points, coloured.
+    let train = views(&data, "transforms_train.json");
+    let t = aim::train::static_stage::GaussianTrainer::new(small_config(), &train, Some(&cloud)).expect("trainer");
+    assert_eq!(t.gaussians.len(), pts.len());
+    assert_eq!(t.gaussians.mean(3), cloud.points[3]);
+    let rendered_dc = t.gaussians.sh_dc[0] * aim::render::sh::SH_C0 + 0.5;
+    assert!((rendered_dc - 200.0 / 255.0).abs() < 1e-5);
+
+    // The CLI takes the PLY, and a COLMAP model folder; a missing file is named.
+    let mut cfg = small_config();
+    cfg.iterations = 20;
+    let cfg_path = root.join("cfg.toml");
+    std::fs::write(&cfg_path, toml::to_string(&cfg).expect("toml")).expect("write");
+    let colmap = root.join("sparse");
+    std::fs::create_dir_all(&colmap).expect("dir");
+    let model = aim_capture::dataset::ColmapModel {
+        cameras: Default::default(),
+        images: Vec::new(),
+        points: pts
+            .iter()
+            .enumerate()
+            .map(|(i, p)| aim_capture::dataset::ColmapPoint {
+                id: i as u64 + 1,
+                xyz: p.as_dvec3().to_array(),
+                rgb: [10, 20, 30],
+                error: 0.5,
+                track: Vec::new(),
+            })
+            .collect(),
+    };
+    aim_capture::dataset::write_colmap_text(&model, &colmap).expect("colmap written");
+    for (init, out) in [(ply.clone(), "from_ply"), (colmap.clone(), "from_colmap")] {
+        let o = Command::new(env!("CARGO_BIN_EXE_aim"))
+            .args(["--log", "warn", "train-static"])
+            .arg(&data)
+            .arg("--out")
+            .arg(root.join(out))
+            .arg("--config")
+            .arg(&cfg_path)
+            .arg("--init-points")
+            .arg(&init)
+            .output()
+            .expect("runs");
+        assert!(o.status.success(), "{out}: {}", String::from_utf8_lossy(&o.stderr));
+    }
+    let missing = root.join("nope.ply");
+    let o = Command::new(env!("CARGO_BIN_EXE_aim"))
+        .args(["--log", "error", "train-static"])
+        .arg(&data)
+        .arg("--out")
+        .arg(root.join("x"))
+        .arg("--init-points")
+        .arg(&missing)
+        .output()
+        .expect("runs");
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("nope.ply"));
 }

@@ -11,7 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use aim::synth::{objects, write_dataset, SynthConfig};
 use aim::train::config::StaticConfig;
-use aim::train::static_stage::{run_static, RunOutcome};
+use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -51,7 +51,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     let never = AtomicBool::new(false);
     let viz = args.rerun.open()?;
-    let outcome = run_static(train_cfg, &train, &test, &args.out.join("static"), false, &never, &viz, |r| {
+    let run_dir = args.out.join("static");
+    let setup = RunSetup { run_dir: &run_dir, resume: false, init: None };
+    let outcome = run_static(train_cfg, &train, &test, &setup, &never, &viz, |r| {
         bar.set_position(u64::from(r.iteration));
         if r.iteration % 20 == 0 {
             bar.set_message(format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians));

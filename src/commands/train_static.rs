@@ -7,8 +7,9 @@ use std::sync::Arc;
 use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use aim::splat::ply::PointCloud;
 use aim::train::config::StaticConfig;
-use aim::train::static_stage::{run_static, RunOutcome};
+use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
 use aim::train::views::views_from_frames;
 use aim_capture::dataset::{load_aim_transforms, LoadOptions};
 use aim_capture::Phase;
@@ -29,6 +30,10 @@ pub struct Args {
     /// Continue from RUN/checkpoint.bin.
     #[arg(long)]
     pub resume: bool,
+    /// Initial points instead of random ones: a point-cloud PLY (x y z [red green blue])
+    /// or a COLMAP sparse model folder (cameras, images, points3D; .bin or .txt).
+    #[arg(long, value_name = "PLY|COLMAP_DIR")]
+    pub init_points: Option<PathBuf>,
     /// Override the seed.
     #[arg(long)]
     pub seed: Option<u64>,
@@ -105,6 +110,24 @@ pub fn load_start_views(
     Ok((views_from_frames(&frames, width)?, views_from_frames(&test_frames, width)?))
 }
 
+/// Initial points from a PLY point cloud or a COLMAP sparse model folder.
+pub fn load_init_points(path: &Path) -> anyhow::Result<PointCloud> {
+    let cloud = if path.is_dir() {
+        let model = aim_capture::dataset::read_colmap_model(path)?;
+        PointCloud {
+            points: model.point_positions(),
+            colors: Some(model.points.iter().map(|p| glam::Vec3::from(p.rgb.map(|c| f32::from(c) / 255.0))).collect()),
+        }
+    } else {
+        aim::splat::ply::read_point_cloud(path)?
+    };
+    if cloud.points.is_empty() {
+        bail!("{}: the point cloud has no points", path.display());
+    }
+    tracing::info!(points = cloud.points.len(), "initial points from {}", path.display());
+    Ok(cloud)
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = resolve_config(&args)?;
     let (train, test) = load_start_views(&args.dataset, cfg.resolution)?;
@@ -129,7 +152,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     let mut ema_psnr = 0.0f32;
     let viz = args.rerun.open()?;
-    let outcome = run_static(cfg, &train, &test, &args.out, args.resume, &interrupt, &viz, |r| {
+    let init = args.init_points.as_deref().map(load_init_points).transpose()?;
+    let setup = RunSetup { run_dir: &args.out, resume: args.resume, init: init.as_ref() };
+    let outcome = run_static(cfg, &train, &test, &setup, &interrupt, &viz, |r| {
         ema_psnr = if ema_psnr == 0.0 { r.psnr } else { 0.9 * ema_psnr + 0.1 * r.psnr };
         bar.set_position(u64::from(r.iteration));
         if r.iteration % 10 == 0 {

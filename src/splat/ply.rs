@@ -404,6 +404,86 @@ pub fn decode_ply(bytes: &[u8], path: &Path) -> Result<GaussianSet> {
     Ok(set)
 }
 
+/// A plain point cloud: positions and, when the file has them, colours in [0, 1].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PointCloud {
+    pub points: Vec<glam::Vec3>,
+    pub colors: Option<Vec<glam::Vec3>>,
+}
+
+/// Read a point-cloud PLY (any format and numeric types): `x y z` and, when
+/// present, `red green blue` (integers scaled from 0..255, floats taken as 0..1).
+pub fn read_point_cloud(path: &Path) -> Result<PointCloud> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    decode_point_cloud(&bytes, path)
+}
+
+/// Decode a point-cloud PLY's bytes; `path` is only used in error messages.
+pub fn decode_point_cloud(bytes: &[u8], path: &Path) -> Result<PointCloud> {
+    let header = parse_header(bytes, path)?;
+    let bad = |msg: String| Error::bad_file(path, msg);
+    let vi = header
+        .elements
+        .iter()
+        .position(|e| e.name == "vertex")
+        .ok_or_else(|| bad("the PLY has no 'vertex' element".into()))?;
+    let vertex = &header.elements[vi];
+    let find = |name: &str| vertex.props.iter().position(|p| p.name == name);
+    let (Some(_), Some(_), Some(_)) = (find("x"), find("y"), find("z")) else {
+        return Err(bad("vertex element lacks x, y or z".into()));
+    };
+    let has_color = ["red", "green", "blue"].iter().all(|c| find(c).is_some());
+    // Column of each property: 0..3 position, 3..6 colour, else ignored.
+    let column: Vec<Option<usize>> = vertex
+        .props
+        .iter()
+        .map(|p| match p.name.as_str() {
+            "x" => Some(0),
+            "y" => Some(1),
+            "z" => Some(2),
+            "red" if has_color => Some(3),
+            "green" if has_color => Some(4),
+            "blue" if has_color => Some(5),
+            _ => None,
+        })
+        .collect();
+    let color_scale: Vec<f64> = vertex
+        .props
+        .iter()
+        .map(|p| match p.ty {
+            PropType::Scalar(s) if !s.is_float() => 1.0 / 255.0,
+            _ => 1.0,
+        })
+        .collect();
+    let mut body = Body { bytes, pos: header.body_start, format: header.format };
+    let truncated = |el: &Element, row: usize| {
+        bad(format!("truncated or malformed body: element '{}' row {row} of {}", el.name, el.count))
+    };
+    for el in &header.elements[..vi] {
+        read_rows(&mut body, el, |_, _| Ok(())).map_err(|row| truncated(el, row))??;
+    }
+    // Every row takes at least one byte: refuse counts the file cannot hold before allocating.
+    if vertex.count > bytes.len() {
+        return Err(truncated(vertex, 0));
+    }
+    let mut values = vec![[0.0f32; 6]; vertex.count];
+    read_rows(&mut body, vertex, |row, (pi, v)| {
+        if let Some(c) = column[pi] {
+            let v = (if c >= 3 { v * color_scale[pi] } else { v }) as f32;
+            if !v.is_finite() {
+                return Err(bad(format!("vertex {row}: property '{}' is not a finite number", vertex.props[pi].name)));
+            }
+            values[row][c] = v;
+        }
+        Ok(())
+    })
+    .map_err(|row| truncated(vertex, row))??;
+    Ok(PointCloud {
+        points: values.iter().map(|v| glam::Vec3::new(v[0], v[1], v[2])).collect(),
+        colors: has_color.then(|| values.iter().map(|v| glam::Vec3::new(v[3], v[4], v[5])).collect()),
+    })
+}
+
 /// Read every row of `el`, calling `f(row, (property index, value))` for each scalar
 /// property. Outer error: the row where the data ran out or did not parse.
 fn read_rows(
@@ -642,6 +722,7 @@ mod tests {
             }
             let end = cut.index(bytes.len() + 1);
             let _ = decode_ply(&bytes[..end], p());
+            let _ = decode_point_cloud(&bytes[..end], p());
         }
 
         #[test]

@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{write_atomic, Error, Result};
 use crate::render::{backward, render, RenderOptions};
+use crate::splat::ply::PointCloud;
 use crate::splat::GaussianSet;
 use crate::train::config::StaticConfig;
 use crate::train::density::{densify_and_prune, reset_opacity, DensifyParams, DensifyReport, DensityStats};
@@ -66,29 +67,29 @@ const STREAM_BACKGROUND: u64 = 2;
 const STREAM_DENSIFY: u64 = 3;
 
 impl GaussianTrainer {
-    /// Start from `points` (or random points in the configured box).
-    pub fn new(
-        config: StaticConfig,
-        views: &[TrainView],
-        points: Option<(Vec<Vec3>, Option<Vec<Vec3>>)>,
-    ) -> Result<Self> {
+    /// Start from a point cloud (or random points in the configured box).
+    pub fn new(config: StaticConfig, views: &[TrainView], points: Option<&PointCloud>) -> Result<Self> {
         if views.is_empty() {
             return Err(Error::Config("no training views".into()));
         }
         config.validate().map_err(Error::Config)?;
-        let (pts, colors) = match points {
-            Some(p) => p,
-            None => (
-                random_points(
+        let gaussians = match points {
+            Some(cloud) => {
+                if cloud.points.is_empty() {
+                    return Err(Error::Config("the initial point cloud is empty".into()));
+                }
+                gaussians_from_points(&cloud.points, cloud.colors.as_deref(), config.init.opacity, config.sh_degree)
+            }
+            None => {
+                let pts = random_points(
                     config.init.points,
                     Vec3::from(config.init.box_min),
                     Vec3::from(config.init.box_max),
                     config.seed,
-                ),
-                None,
-            ),
+                );
+                gaussians_from_points(&pts, None, config.init.opacity, config.sh_degree)
+            }
         };
-        let gaussians = gaussians_from_points(&pts, colors.as_deref(), config.init.opacity, config.sh_degree);
         let adam = Adam::new(&gaussians);
         let stats = DensityStats::new(gaussians.len());
         Ok(Self { extent: camera_extent(views), config, gaussians, adam, stats, iteration: 0 })
@@ -309,24 +310,32 @@ fn log_state(viz: &Viz, trainer: &GaussianTrainer, eval: &TrainView) {
     viz.image_rgb("eval/render", r.width, r.height, &r.image.color);
 }
 
+/// Where a stage I run lives and how it starts.
+pub struct RunSetup<'a> {
+    pub run_dir: &'a Path,
+    /// Continue from the run folder's checkpoint.
+    pub resume: bool,
+    /// Initial points (a fresh run only); None = random points in the configured box.
+    pub init: Option<&'a PointCloud>,
+}
+
 /// Train stage I into `run_dir`: resume from its checkpoint if asked, checkpoint
 /// every `checkpoint_interval` iterations and when `interrupt` is raised, log to
 /// `viz`, and on completion write static.ply, config.toml, test renders and
 /// metrics.json.
-#[allow(clippy::too_many_arguments)]
 pub fn run_static(
     config: StaticConfig,
     train: &[TrainView],
     test: &[TrainView],
-    run_dir: &Path,
-    resume: bool,
+    setup: &RunSetup,
     interrupt: &AtomicBool,
     viz: &Viz,
     mut progress: impl FnMut(&StepReport),
 ) -> Result<RunOutcome> {
+    let run_dir = setup.run_dir;
     std::fs::create_dir_all(run_dir).map_err(|e| Error::io(run_dir, e))?;
     let paths = RunPaths { dir: run_dir.to_path_buf() };
-    let (mut trainer, mut elapsed_before) = if resume && paths.checkpoint().exists() {
+    let (mut trainer, mut elapsed_before) = if setup.resume && paths.checkpoint().exists() {
         let (t, e) = load_checkpoint(&paths.checkpoint())?;
         if t.config != config {
             return Err(Error::Config(format!(
@@ -337,7 +346,7 @@ pub fn run_static(
         tracing::info!(iteration = t.iteration, "resuming from {}", paths.checkpoint().display());
         (t, e)
     } else {
-        (GaussianTrainer::new(config.clone(), train, None)?, 0.0)
+        (GaussianTrainer::new(config.clone(), train, setup.init)?, 0.0)
     };
     let toml_text = toml::to_string(&config).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&paths.config(), toml_text.as_bytes())?;
