@@ -128,38 +128,43 @@ pub fn render_bench(sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<Rend
     for &n in counts {
         let gs = random_scene(n, 7);
         for &size in sizes {
-            let cam = bench_camera(size);
-            let opts = RenderOptions { background: Vec3::splat(0.2), sh_degree: None };
-            let warm = render(&gs, &cam, &opts);
-            let grad: Vec<f32> = (0..warm.image.color.len()).map(|i| ((i % 7) as f32 - 3.0) * 1e-3).collect();
-            let mut fwd = Vec::new();
-            let mut both = Vec::new();
-            for _ in 0..repeats {
-                let t = Instant::now();
-                let r = render(&gs, &cam, &opts);
-                fwd.push(t.elapsed().as_secs_f64() * 1e3);
-                let t = Instant::now();
-                let r2 = render(&gs, &cam, &opts);
-                let g = backward(&gs, &r2, &grad, None, None);
-                both.push(t.elapsed().as_secs_f64() * 1e3);
-                std::hint::black_box((r, g));
-            }
-            let forward_ms = median(fwd);
-            let evals = crate::render::raster::pixel_evaluations(&warm.projected, &warm.bins, size, size);
-            rows.push(RenderBenchRow {
-                resolution: size,
-                gaussians: n,
-                visible: warm.visible_count(),
-                tile_entries: warm.bins.entries.len(),
-                forward_ms,
-                forward_backward_ms: median(both),
-                gaussian_pixel_evals: evals,
-                forward_evals_per_s: evals as f64 / (forward_ms * 1e-3),
-                stages_ms: stage_times(&gs, &cam, &opts, &grad, repeats),
-            });
+            rows.push(time_render(&gs, &bench_camera(size), repeats));
         }
     }
     rows
+}
+
+/// Time forward and forward+backward of one scene from one camera (medians).
+pub fn time_render(gs: &GaussianSet, cam: &Camera, repeats: usize) -> RenderBenchRow {
+    let opts = RenderOptions { background: Vec3::splat(0.2), sh_degree: None };
+    let warm = render(gs, cam, &opts);
+    let grad: Vec<f32> = (0..warm.image.color.len()).map(|i| ((i % 7) as f32 - 3.0) * 1e-3).collect();
+    let mut fwd = Vec::new();
+    let mut both = Vec::new();
+    for _ in 0..repeats {
+        let t = Instant::now();
+        let r = render(gs, cam, &opts);
+        fwd.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        let r2 = render(gs, cam, &opts);
+        let g = backward(gs, &r2, &grad, None, None);
+        both.push(t.elapsed().as_secs_f64() * 1e3);
+        std::hint::black_box((r, g));
+    }
+    let forward_ms = median(fwd);
+    let (w, h) = (cam.width(), cam.height());
+    let evals = crate::render::raster::pixel_evaluations(&warm.projected, &warm.bins, w, h);
+    RenderBenchRow {
+        resolution: w.max(h),
+        gaussians: gs.len(),
+        visible: warm.visible_count(),
+        tile_entries: warm.bins.entries.len(),
+        forward_ms,
+        forward_backward_ms: median(both),
+        gaussian_pixel_evals: evals,
+        forward_evals_per_s: evals as f64 / (forward_ms * 1e-3),
+        stages_ms: stage_times(gs, cam, &opts, &grad, repeats),
+    }
 }
 
 #[derive(Debug, Serialize)]

@@ -85,3 +85,26 @@ fn bad_camera_and_ply_files_name_the_file() {
     assert!(!o.status.success() && err.contains("truncated.ply"), "{err}");
     assert!(!out.exists(), "no output on failure");
 }
+
+#[test]
+fn render_bench_times_a_given_ply_and_camera() {
+    let dir = tmp("bench");
+    let gs = aim::bench::random_scene(2000, 3);
+    let ply = dir.join("scene.ply");
+    aim::splat::ply::write_ply(&ply, &gs).expect("written");
+    let cam_path = dir.join("camera.json");
+    write_camera(&cam_path, &CameraFile::from_camera(&aim::bench::bench_camera(48)));
+    let o = Command::new(env!("CARGO_BIN_EXE_aim"))
+        .args(["--log", "error", "bench", "render", "--json", "--repeats", "1", "--ply"])
+        .arg(&ply)
+        .arg("--camera")
+        .arg(&cam_path)
+        .output()
+        .expect("aim runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("JSON");
+    let row = &v["rows"][0];
+    assert_eq!(row["gaussians"], 2000);
+    assert_eq!(row["resolution"], 48);
+    assert!(row["forward_backward_ms"].as_f64().expect("time") > 0.0);
+}

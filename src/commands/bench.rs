@@ -16,6 +16,12 @@ pub enum Bench {
         /// Gaussian counts, comma-separated.
         #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 50_000, 200_000])]
         counts: Vec<usize>,
+        /// Time this 3DGS PLY instead of the random scenes (with --camera).
+        #[arg(long, requires = "camera")]
+        ply: Option<std::path::PathBuf>,
+        /// Camera JSON for --ply (the `aim render` format).
+        #[arg(long, requires = "ply")]
+        camera: Option<std::path::PathBuf>,
     },
     /// Deformation network forward and forward+backward timings.
     Deform {
@@ -72,8 +78,15 @@ pub fn run(b: Bench) -> anyhow::Result<()> {
             }
             return Ok(());
         }
-        Bench::Render { json, repeats, sizes, counts } => {
-            let rows = aim::bench::render_bench(&sizes, &counts, repeats.max(1));
+        Bench::Render { json, repeats, sizes, counts, ply, camera } => {
+            let rows = match (ply, camera) {
+                (Some(ply), Some(camera)) => {
+                    let gs = aim::splat::ply::read_ply(&ply)?;
+                    let cam = aim::camera::Camera::load_json(&camera)?;
+                    vec![aim::bench::time_render(&gs, &cam, repeats.max(1))]
+                }
+                _ => aim::bench::render_bench(&sizes, &counts, repeats.max(1)),
+            };
             let report = serde_json::json!({
                 "bench": "render",
                 "threads": rayon::current_num_threads(),
