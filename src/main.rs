@@ -35,6 +35,8 @@ enum Command {
     SynthRecording(commands::synth_recording::Args),
     /// Stage I: train the start-state 3DGS from a dataset's scan views.
     TrainStatic(commands::train_static::Args),
+    /// Stages II and III: dual Gaussians on the motion video, then parts and joints.
+    TrainDynamic(commands::train_dynamic::Args),
 }
 
 fn main() -> ExitCode {
@@ -49,6 +51,7 @@ fn main() -> ExitCode {
         Command::Capture(c) => commands::capture::run(c),
         Command::SynthRecording(a) => commands::synth_recording::run(a),
         Command::TrainStatic(args) => commands::train_static::run(args),
+        Command::TrainDynamic(args) => commands::train_dynamic::run(args),
         Command::Demo(args) => commands::demo::run(args),
     };
     match result {

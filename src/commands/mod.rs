@@ -7,6 +7,7 @@ pub mod demo;
 pub mod render;
 pub mod synth;
 pub mod synth_recording;
+pub mod train_dynamic;
 pub mod train_static;
 
 use std::path::Path;

@@ -156,6 +156,31 @@ impl GaussianSet {
         sigmoid(self.opacity_logits[i])
     }
 
+    /// Append every Gaussian of `other` (same SH degree).
+    pub fn extend_from(&mut self, other: &GaussianSet) {
+        assert_eq!(self.sh_degree, other.sh_degree, "SH degrees must match");
+        for g in ParamGroup::ALL {
+            self.group_mut(g).extend_from_slice(other.group(g));
+        }
+    }
+
+    /// A copy of the rows where `keep[i]` is true.
+    pub fn subset(&self, keep: &[bool]) -> GaussianSet {
+        let mut out = self.clone();
+        out.retain(keep);
+        out
+    }
+
+    /// Rows `range` of this set's groups as a new set.
+    pub fn rows(&self, range: std::ops::Range<usize>) -> GaussianSet {
+        let mut out = GaussianSet::new(self.sh_degree);
+        for g in ParamGroup::ALL {
+            let w = self.width(g);
+            *out.group_mut(g) = self.group(g)[range.start * w..range.end * w].to_vec();
+        }
+        out
+    }
+
     /// Keep only the rows where `keep[i]` is true, in every group.
     pub fn retain(&mut self, keep: &[bool]) {
         assert_eq!(keep.len(), self.len());

@@ -38,16 +38,24 @@ impl DensityStats {
         self.len() == 0
     }
 
-    /// Add one view's statistics. `offset` is where this render's Gaussians start
-    /// in the trained set (a render may cover a subset, e.g. the moving set).
-    pub fn record(&mut self, render: &Render, grads: &Gradients, offset: usize) {
-        for (i, p) in render.projected.iter().enumerate() {
-            let Some(p) = p else { continue };
-            let j = offset + i;
+    /// Add one view's statistics for the rendered Gaussians `rows` (a render may
+    /// cover several sets, e.g. static and moving: row `rows.start + j` of the render
+    /// is Gaussian j of this set).
+    pub fn record(&mut self, render: &Render, grads: &Gradients, rows: std::ops::Range<usize>) {
+        for (j, i) in rows.enumerate() {
+            let Some(p) = &render.projected[i] else { continue };
             self.grad_accum[j] += grads.mean2d_grad_norm[i];
             self.denom[j] += 1.0;
             self.max_radius[j] = self.max_radius[j].max(p.radius);
         }
+    }
+
+    /// Append zeroed statistics for `n` new Gaussians.
+    pub fn append(&mut self, n: usize) {
+        let len = self.len() + n;
+        self.grad_accum.resize(len, 0.0);
+        self.denom.resize(len, 0.0);
+        self.max_radius.resize(len, 0.0);
     }
 
     fn retain(&mut self, keep: &[bool]) {
@@ -136,9 +144,7 @@ pub fn densify_and_prune(
         gs.group_mut(g).extend(extra);
     }
     adam.append_rows(appended);
-    stats.grad_accum.resize(n + appended, 0.0);
-    stats.denom.resize(n + appended, 0.0);
-    stats.max_radius.resize(n + appended, 0.0);
+    stats.append(appended);
 
     // Remove split originals, then prune the whole set (new rows included, as 3DGS does).
     let mut keep = vec![true; gs.len()];

@@ -2,6 +2,7 @@
 
 pub mod config;
 pub mod density;
+pub mod dynamic_stage;
 pub mod init;
 pub mod loss;
 pub mod optim;

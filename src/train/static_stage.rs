@@ -149,7 +149,7 @@ impl GaussianTrainer {
             StepReport { iteration: it, loss: loss.loss, psnr: psnr(&r.image.color, &target), ..Default::default() };
 
         if it < d.until_iter {
-            self.stats.record(&r, &grads, 0);
+            self.stats.record(&r, &grads, 0..self.gaussians.len());
         }
         let lrs = self.learning_rates(it);
         self.adam.step(&mut self.gaussians, &grads.params, &lrs);
