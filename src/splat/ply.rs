@@ -297,15 +297,33 @@ fn slot_for(name: &str, rest_k: usize) -> Slot {
     }
 }
 
+/// Position of the 'vertex' element.
+fn vertex_index(header: &Header, path: &Path) -> Result<usize> {
+    header
+        .elements
+        .iter()
+        .position(|e| e.name == "vertex")
+        .ok_or_else(|| Error::bad_file(path, "the PLY has no 'vertex' element"))
+}
+
+fn truncated_error(path: &Path, el: &Element, row: usize) -> Error {
+    Error::bad_file(path, format!("truncated or malformed body: element '{}' row {row} of {}", el.name, el.count))
+}
+
+/// A reader positioned at the vertex rows (the elements stored before them skipped).
+fn body_at_vertices<'a>(bytes: &'a [u8], header: &Header, vi: usize, path: &Path) -> Result<Body<'a>> {
+    let mut body = Body { bytes, pos: header.body_start, format: header.format };
+    for el in &header.elements[..vi] {
+        read_rows(&mut body, el, |_, _| Ok(())).map_err(|row| truncated_error(path, el, row))??;
+    }
+    Ok(body)
+}
+
 /// Decode a PLY file's bytes; `path` is only used in error messages.
 pub fn decode_ply(bytes: &[u8], path: &Path) -> Result<GaussianSet> {
     let header = parse_header(bytes, path)?;
     let bad = |msg: String| Error::bad_file(path, msg);
-    let vi = header
-        .elements
-        .iter()
-        .position(|e| e.name == "vertex")
-        .ok_or_else(|| bad("the PLY has no 'vertex' element".into()))?;
+    let vi = vertex_index(&header, path)?;
     let vertex = &header.elements[vi];
 
     // SH degree from the f_rest count; they must be f_rest_0..f_rest_{n-1}.
@@ -358,15 +376,8 @@ pub fn decode_ply(bytes: &[u8], path: &Path) -> Result<GaussianSet> {
         return Err(bad(format!("vertex element lacks properties: {}", missing.join(", "))));
     }
 
-    let mut body = Body { bytes, pos: header.body_start, format: header.format };
-    let truncated = |el: &Element, row: usize| {
-        bad(format!("truncated or malformed body: element '{}' row {row} of {}", el.name, el.count))
-    };
-
-    // Skip the elements stored before the vertices.
-    for el in &header.elements[..vi] {
-        read_rows(&mut body, el, |_, _| Ok(())).map_err(|row| truncated(el, row))??;
-    }
+    let mut body = body_at_vertices(bytes, &header, vi, path)?;
+    let truncated = |el: &Element, row: usize| truncated_error(path, el, row);
 
     let n = vertex.count;
     // Refuse counts the body cannot hold before allocating for them.
@@ -422,11 +433,7 @@ pub fn read_point_cloud(path: &Path) -> Result<PointCloud> {
 pub fn decode_point_cloud(bytes: &[u8], path: &Path) -> Result<PointCloud> {
     let header = parse_header(bytes, path)?;
     let bad = |msg: String| Error::bad_file(path, msg);
-    let vi = header
-        .elements
-        .iter()
-        .position(|e| e.name == "vertex")
-        .ok_or_else(|| bad("the PLY has no 'vertex' element".into()))?;
+    let vi = vertex_index(&header, path)?;
     let vertex = &header.elements[vi];
     let find = |name: &str| vertex.props.iter().position(|p| p.name == name);
     let (Some(_), Some(_), Some(_)) = (find("x"), find("y"), find("z")) else {
@@ -455,13 +462,8 @@ pub fn decode_point_cloud(bytes: &[u8], path: &Path) -> Result<PointCloud> {
             _ => 1.0,
         })
         .collect();
-    let mut body = Body { bytes, pos: header.body_start, format: header.format };
-    let truncated = |el: &Element, row: usize| {
-        bad(format!("truncated or malformed body: element '{}' row {row} of {}", el.name, el.count))
-    };
-    for el in &header.elements[..vi] {
-        read_rows(&mut body, el, |_, _| Ok(())).map_err(|row| truncated(el, row))??;
-    }
+    let mut body = body_at_vertices(bytes, &header, vi, path)?;
+    let truncated = |el: &Element, row: usize| truncated_error(path, el, row);
     // Every row takes at least one byte: refuse counts the file cannot hold before allocating.
     if vertex.count > bytes.len() {
         return Err(truncated(vertex, 0));

@@ -27,6 +27,28 @@ pub struct LrConfig {
     pub rotation: f32,
 }
 
+impl LrConfig {
+    /// The learning rates at iteration `it` of `max_steps`: the mean rate decays
+    /// exponentially (3DGS) and is scaled by the scene extent; the others are constant.
+    pub fn rates(&self, it: u32, max_steps: u32, extent: f32) -> crate::train::optim::LearningRates {
+        let means = crate::train::optim::ExponLr {
+            lr_init: self.means_init * extent,
+            lr_final: self.means_final * extent,
+            delay_steps: 0,
+            delay_mult: self.means_delay_mult,
+            max_steps: u64::from(max_steps),
+        };
+        crate::train::optim::LearningRates {
+            means: means.at(u64::from(it)),
+            log_scales: self.scale,
+            rotations: self.rotation,
+            opacity_logits: self.opacity,
+            sh_dc: self.sh_dc,
+            sh_rest: self.sh_rest,
+        }
+    }
+}
+
 /// Adaptive density control (3DGS).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

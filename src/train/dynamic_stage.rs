@@ -8,8 +8,7 @@
 
 use glam::{DVec3, Vec3};
 use rand::seq::SliceRandom;
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
+use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::deform::{DeformConfig, DeformNet};
@@ -22,6 +21,7 @@ use crate::train::density::{densify_and_prune, remove, reset_opacity, DensifyPar
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr};
 use crate::train::optim::{Adam, AdamBuffer, ExponLr, LearningRates};
+use crate::train::static_stage::rng_for;
 use crate::train::views::{camera_extent, TrainView};
 
 /// Stage II settings. Defaults from the paper; the official code's values where
@@ -180,13 +180,6 @@ pub struct DualTrainer {
     pub extent: f32,
 }
 
-fn rng_for(seed: u64, stream: u64, iteration: u64) -> ChaCha8Rng {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    rng.set_stream(stream);
-    rng.set_word_pos(u128::from(iteration) << 20);
-    rng
-}
-
 /// Moving Gaussians below this opacity are left out of SDMD and stage III.
 const ANALYSIS_MIN_OPACITY: f32 = 0.1;
 /// Smallest part, as a fraction of the analysed moving Gaussians.
@@ -226,23 +219,9 @@ impl DualTrainer {
         })
     }
 
+    /// Learning rates at `it`; without `positions` only the opacity trains.
     fn learning_rates(&self, it: u32, positions: bool) -> LearningRates {
-        let c = &self.config.lr;
-        let means = ExponLr {
-            lr_init: c.means_init * self.extent,
-            lr_final: c.means_final * self.extent,
-            delay_steps: 0,
-            delay_mult: c.means_delay_mult,
-            max_steps: u64::from(self.config.iterations),
-        };
-        let lr = LearningRates {
-            means: means.at(u64::from(it)),
-            log_scales: c.scale,
-            rotations: c.rotation,
-            opacity_logits: c.opacity,
-            sh_dc: c.sh_dc,
-            sh_rest: c.sh_rest,
-        };
+        let lr = self.config.lr.rates(it, self.config.iterations, self.extent);
         if positions {
             lr
         } else {

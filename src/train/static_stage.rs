@@ -22,7 +22,7 @@ use crate::train::config::StaticConfig;
 use crate::train::density::{densify_and_prune, reset_opacity, DensifyParams, DensifyReport, DensityStats};
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr, ssim};
-use crate::train::optim::{Adam, ExponLr, LearningRates};
+use crate::train::optim::Adam;
 use crate::train::views::{camera_extent, TrainView};
 use crate::viz::Viz;
 
@@ -55,7 +55,7 @@ pub struct GaussianTrainer {
 
 /// A seeded generator for one purpose at one iteration, so every random choice
 /// depends only on (seed, iteration): a resumed run repeats an uninterrupted one.
-fn rng_for(seed: u64, stream: u64, iteration: u64) -> ChaCha8Rng {
+pub(crate) fn rng_for(seed: u64, stream: u64, iteration: u64) -> ChaCha8Rng {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(stream);
     rng.set_word_pos(u128::from(iteration) << 20);
@@ -103,25 +103,6 @@ impl GaussianTrainer {
         order[it as usize % n_views]
     }
 
-    fn learning_rates(&self, it: u32) -> LearningRates {
-        let c = &self.config.lr;
-        let means = ExponLr {
-            lr_init: c.means_init * self.extent,
-            lr_final: c.means_final * self.extent,
-            delay_steps: 0,
-            delay_mult: c.means_delay_mult,
-            max_steps: u64::from(self.config.iterations),
-        };
-        LearningRates {
-            means: means.at(u64::from(it)),
-            log_scales: c.scale,
-            rotations: c.rotation,
-            opacity_logits: c.opacity,
-            sh_dc: c.sh_dc,
-            sh_rest: c.sh_rest,
-        }
-    }
-
     /// SH degree in use at iteration `it` (raised every `sh_increase_interval`).
     pub fn active_sh_degree(&self, it: u32) -> u32 {
         let interval = self.config.sh_increase_interval.max(1);
@@ -151,7 +132,7 @@ impl GaussianTrainer {
         if it < d.until_iter {
             self.stats.record(&r, &grads, 0..self.gaussians.len());
         }
-        let lrs = self.learning_rates(it);
+        let lrs = self.config.lr.rates(it, self.config.iterations, self.extent);
         self.adam.step(&mut self.gaussians, &grads.params, &lrs);
         if it < d.until_iter {
             if it > d.from_iter && it.is_multiple_of(d.interval) {
