@@ -21,7 +21,7 @@ pub struct Args {
     /// The start-state Gaussians from stage I (RUN/static.ply).
     #[arg(long = "static")]
     pub static_ply: PathBuf,
-    /// Output folder (moving.ply, static_pruned.ply, joints.json).
+    /// Output folder (moving.ply, static_pruned.ply, deform.bin, joints.json).
     #[arg(long)]
     pub out: PathBuf,
     #[arg(long, default_value = "cpu")]
@@ -106,6 +106,8 @@ pub fn train_and_analyse(
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     aim::splat::ply::write_ply(&out.join("moving.ply"), &trainer.moving.gaussians)?;
     aim::splat::ply::write_ply(&out.join("static_pruned.ply"), &trainer.static_set.gaussians)?;
+    let net = postcard::to_stdvec(&trainer.net).context("encoding the deformation network")?;
+    aim::error::write_atomic(&out.join("deform.bin"), &net)?;
     let (parts, _) = trainer.analyse();
     let joints: Vec<_> = parts.iter().map(|p| (p.members.len(), p.joint)).collect();
     aim::error::write_atomic(&out.join("joints.json"), &serde_json::to_vec_pretty(&joints)?)?;
