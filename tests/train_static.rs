@@ -122,9 +122,15 @@ fn interrupted_run_resumes_to_the_uninterrupted_result_and_outputs_reload() {
     // The rerun log is a valid recording (checked by rerun's own CLI from the python SDK)
     // holding the training scalars, the Gaussians and the cameras.
     drop(viz);
-    let verify = Command::new("rerun").args(["rrd", "verify"]).arg(&rrd).output().expect("rerun CLI runs");
+    // `python3 -m rerun`: the SDK's CLI without relying on a console-script shim.
+    let verify =
+        Command::new("python3").args(["-m", "rerun", "rrd", "verify"]).arg(&rrd).output().expect("rerun CLI runs");
     assert!(verify.status.success(), "rerun rrd verify: {}", String::from_utf8_lossy(&verify.stderr));
-    let print = Command::new("rerun").args(["rrd", "print", "--verbose"]).arg(&rrd).output().expect("rerun CLI runs");
+    let print = Command::new("python3")
+        .args(["-m", "rerun", "rrd", "print", "--verbose"])
+        .arg(&rrd)
+        .output()
+        .expect("rerun CLI runs");
     let listing = String::from_utf8_lossy(&print.stdout);
     for entity in ["/train/loss", "/world/gaussians", "/world/train_cameras/000", "/eval/render"] {
         assert!(listing.contains(entity), "{entity} missing from the recording");
