@@ -81,7 +81,7 @@ pub struct StageTimes {
 
 /// Time each rasterizer stage separately (median of `repeats`).
 fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32], repeats: usize) -> StageTimes {
-    use crate::render::project::{project_one, project_one_backward, ProjectionCamera};
+    use crate::render::project::{project_backward_all, project_one, ProjectionCamera};
     use crate::render::raster::{bin_tiles, rasterize, rasterize_backward};
     use rayon::prelude::*;
     let pc = ProjectionCamera::new(cam);
@@ -101,15 +101,7 @@ fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32
         let (pg, _) = rasterize_backward(&proj, &bins, w, h, opts.background, &out, grad, None, None);
         t[3].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
-        let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
-        let mut rest = vec![0.0f32; rest_w.max(1) * gs.len()];
-        let raw: Vec<_> = rest
-            .par_chunks_mut(rest_w.max(1))
-            .enumerate()
-            .map(|(i, r)| {
-                proj[i].as_ref().map(|p| project_one_backward(gs, i, &pc, gs.sh_degree, p, &pg[i], &mut r[..rest_w]))
-            })
-            .collect();
+        let raw = project_backward_all(gs, &proj, &pc, gs.sh_degree, &pg);
         t[4].push(clock.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box(raw);
     }

@@ -138,6 +138,18 @@ pub struct DeformOutput {
     pub cache: DeformCache,
 }
 
+impl DeformOutput {
+    /// Deform `g` (the set whose means were the input): means + d_xyz, raw quaternions + d_rot.
+    pub fn apply(&self, g: &mut crate::splat::GaussianSet) {
+        for (m, dm) in g.means.iter_mut().zip(&self.d_xyz) {
+            *m += dm;
+        }
+        for (r, dr) in g.rotations.iter_mut().zip(&self.d_rot) {
+            *r += dr;
+        }
+    }
+}
+
 impl DeformNet {
     /// A network with PyTorch's default initialisation (uniform +-1/sqrt(fan_in))
     /// and heads scaled by 1e-3, seeded.

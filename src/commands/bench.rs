@@ -51,17 +51,20 @@ pub enum Bench {
     },
 }
 
+/// Print a report as one JSON line (`--json`) or indented JSON.
+fn print_report(report: &serde_json::Value, one_line: bool) -> anyhow::Result<()> {
+    let text = if one_line { serde_json::to_string(report)? } else { serde_json::to_string_pretty(report)? };
+    println!("{text}");
+    Ok(())
+}
+
 pub fn run(b: Bench) -> anyhow::Result<()> {
     match b {
         Bench::Deform { json, repeats, counts } => {
             let rows = aim::bench::deform_bench(&[(8, 256), (4, 128)], &counts, repeats.max(1));
             let report =
                 serde_json::json!({ "bench": "deform", "threads": rayon::current_num_threads(), "rows": rows });
-            if json {
-                println!("{}", serde_json::to_string(&report)?);
-            } else {
-                println!("{}", serde_json::to_string_pretty(&report)?);
-            }
+            print_report(&report, json)?;
         }
         Bench::Ingest { json, recording, frames, threads } => {
             let recording = recording.unwrap_or_else(|| {
@@ -71,12 +74,7 @@ pub fn run(b: Bench) -> anyhow::Result<()> {
             let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2));
             let r = aim_capture::bench::bench_ingest(&recording, frames, threads)?;
             let report = serde_json::json!({ "bench": "ingest", "result": r });
-            if json {
-                println!("{}", serde_json::to_string(&report)?);
-            } else {
-                println!("{}", serde_json::to_string_pretty(&report)?);
-            }
-            return Ok(());
+            print_report(&report, json)?;
         }
         Bench::Render { json, repeats, sizes, counts, ply, camera } => {
             let rows = match (ply, camera) {
@@ -92,11 +90,7 @@ pub fn run(b: Bench) -> anyhow::Result<()> {
                 "threads": rayon::current_num_threads(),
                 "rows": rows,
             });
-            if json {
-                println!("{}", serde_json::to_string(&report)?);
-            } else {
-                println!("{}", serde_json::to_string_pretty(&report)?);
-            }
+            print_report(&report, json)?;
         }
     }
     Ok(())

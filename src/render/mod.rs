@@ -117,20 +117,7 @@ pub fn backward(
     );
     let pc = ProjectionCamera::new(&fwd.camera);
     let n = gs.len();
-    let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
-    // Rows of at least one float so the chunked iteration also works at degree 0.
-    let row = rest_w.max(1);
-    let mut sh_rest = vec![0.0; row * n];
-    let raw: Vec<Option<project::RawGrad>> = sh_rest
-        .par_chunks_mut(row)
-        .enumerate()
-        .map(|(i, rest)| {
-            fwd.projected[i].as_ref().map(|p| {
-                project::project_one_backward(gs, i, &pc, fwd.sh_degree, p, &proj_grads[i], &mut rest[..rest_w])
-            })
-        })
-        .collect();
-    sh_rest.truncate(rest_w * n);
+    let (raw, sh_rest) = project::project_backward_all(gs, &fwd.projected, &pc, fwd.sh_degree, &proj_grads);
 
     let mut params = GaussianSet::new(gs.sh_degree);
     params.sh_rest = sh_rest;

@@ -329,3 +329,32 @@ fn quat_matrix_backward(q: Quat, g: Mat3) -> glam::Vec4 {
             + y * gr(2, 1));
     glam::Vec4::new(gw, gx, gy, gz)
 }
+
+/// [`project_one_backward`] for every Gaussian that `projected` kept, in parallel.
+/// Returns the per-Gaussian gradients (None where culled) and the SH rest
+/// gradients as one flat buffer in the set's layout.
+pub fn project_backward_all(
+    gs: &GaussianSet,
+    projected: &[Option<Projected>],
+    cam: &ProjectionCamera,
+    sh_degree: u32,
+    grads: &[ProjectedGrad],
+) -> (Vec<Option<RawGrad>>, Vec<f32>) {
+    use rayon::prelude::*;
+    let n = gs.len();
+    let rest_w = gs.width(crate::splat::ParamGroup::ShRest);
+    // Rows of at least one float so the chunked iteration also works at degree 0.
+    let row = rest_w.max(1);
+    let mut sh_rest = vec![0.0; row * n];
+    let raw = sh_rest
+        .par_chunks_mut(row)
+        .enumerate()
+        .map(|(i, rest)| {
+            projected[i]
+                .as_ref()
+                .map(|p| project_one_backward(gs, i, cam, sh_degree, p, &grads[i], &mut rest[..rest_w]))
+        })
+        .collect();
+    sh_rest.truncate(rest_w * n);
+    (raw, sh_rest)
+}

@@ -70,6 +70,22 @@ pub struct DensityConfig {
     pub max_gaussians: usize,
 }
 
+impl DensityConfig {
+    /// Limits of a densify-and-prune step at iteration `it` in a scene of `extent`:
+    /// the size-based pruning starts after the first opacity reset (3DGS).
+    pub fn densify_params(&self, it: u32, extent: f32) -> crate::train::density::DensifyParams {
+        let size_limits = it > self.opacity_reset_interval;
+        crate::train::density::DensifyParams {
+            grad_threshold: self.grad_threshold,
+            dense_size: self.percent_dense * extent,
+            min_opacity: self.min_opacity,
+            max_screen_size: size_limits.then_some(self.max_screen_size),
+            max_world_size: size_limits.then_some(self.max_world_size * extent),
+            max_gaussians: self.max_gaussians,
+        }
+    }
+}
+
 /// How the start-state Gaussians are created.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

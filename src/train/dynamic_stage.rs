@@ -7,8 +7,6 @@
 //! on the moving set.
 
 use glam::{DVec3, Vec3};
-use rand::seq::SliceRandom;
-use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::deform::{DeformConfig, DeformNet};
@@ -17,11 +15,11 @@ use crate::motion::{extract_joint, segment_rigid_parts, JointEstimate, RansacCon
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::{sigmoid, GaussianSet};
 use crate::train::config::{DensityConfig, LrConfig};
-use crate::train::density::{densify_and_prune, remove, reset_opacity, DensifyParams, DensityStats};
+use crate::train::density::{densify_and_prune, remove, reset_opacity, DensityStats};
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr};
 use crate::train::optim::{Adam, AdamBuffer, ExponLr, LearningRates};
-use crate::train::static_stage::rng_for;
+use crate::train::static_stage::{pick_view, rng_for};
 use crate::train::views::{camera_extent, TrainView};
 
 /// Stage II settings. Defaults from the paper; the official code's values where
@@ -180,6 +178,9 @@ pub struct DualTrainer {
     pub extent: f32,
 }
 
+/// Random streams of stage II's view order and backgrounds.
+const STAGE_II_STREAMS: (u64, u64) = (11, 12);
+
 /// Moving Gaussians below this opacity are left out of SDMD and stage III.
 const ANALYSIS_MIN_OPACITY: f32 = 0.1;
 /// Smallest part, as a fraction of the analysed moving Gaussians.
@@ -229,16 +230,10 @@ impl DualTrainer {
         }
     }
 
-    /// The moving set deformed to time `t` (canonical when before the warm-up ends).
+    /// The moving set deformed to time `t` by the network.
     pub fn moving_at(&self, t: f32) -> GaussianSet {
         let mut g = self.moving.gaussians.clone();
-        let d = self.net.forward(&g.means, network_time(t));
-        for (m, dm) in g.means.iter_mut().zip(&d.d_xyz) {
-            *m += dm;
-        }
-        for (r, dr) in g.rotations.iter_mut().zip(&d.d_rot) {
-            *r += dr;
-        }
+        self.net.forward(&g.means, network_time(t)).apply(&mut g);
         g
     }
 
@@ -252,18 +247,10 @@ impl DualTrainer {
     /// One optimisation step on one of the motion `views`.
     pub fn step(&mut self, views: &[TrainView]) -> DynamicStep {
         let it = self.iteration + 1;
-        let n_views = views.len();
-        let epoch = self.iteration as usize / n_views;
-        let mut order: Vec<usize> = (0..n_views).collect();
-        order.shuffle(&mut rng_for(self.config.seed, 11, epoch as u64));
-        let view = &views[order[self.iteration as usize % n_views]];
+        let c = &self.config;
+        let (view, bg) =
+            pick_view(views, c.seed, self.iteration, c.random_background, c.eval_background, STAGE_II_STREAMS);
         let t = view.time.unwrap_or(0.0);
-        let bg = if self.config.random_background && view.alpha.is_some() {
-            let mut rng = rng_for(self.config.seed, 12, u64::from(it));
-            Vec3::new(rng.random(), rng.random(), rng.random())
-        } else {
-            Vec3::from(self.config.eval_background)
-        };
 
         let deforming = it > self.config.warmup_iterations;
         let ns = self.static_set.gaussians.len();
@@ -271,12 +258,7 @@ impl DualTrainer {
         let mut moving = self.moving.gaussians.clone();
         let deform = deforming.then(|| self.net.forward(&moving.means, network_time(t)));
         if let Some(d) = &deform {
-            for (m, dm) in moving.means.iter_mut().zip(&d.d_xyz) {
-                *m += dm;
-            }
-            for (r, dr) in moving.rotations.iter_mut().zip(&d.d_rot) {
-                *r += dr;
-            }
+            d.apply(&mut moving);
         }
         let mut union = self.static_set.gaussians.clone();
         union.extend_from(&moving);
@@ -317,21 +299,13 @@ impl DualTrainer {
         self.moving.adam.step(&mut self.moving.gaussians, &g_moving, &lr_moving);
 
         if it < d.until_iter && it > d.from_iter && it.is_multiple_of(d.interval) {
-            let params = |size_limits: bool| DensifyParams {
-                grad_threshold: d.grad_threshold,
-                dense_size: d.percent_dense * self.extent,
-                min_opacity: d.min_opacity,
-                max_screen_size: size_limits.then_some(d.max_screen_size),
-                max_world_size: size_limits.then_some(d.max_world_size * self.extent),
-                max_gaussians: d.max_gaussians,
-            };
+            let params = d.densify_params(it, self.extent);
             let mut rng = rng_for(self.config.seed, 13, u64::from(it));
-            let size_limits = it > d.opacity_reset_interval;
             let m = &mut self.moving;
-            densify_and_prune(&mut m.gaussians, &mut m.adam, &mut m.stats, &params(size_limits), &mut rng);
+            densify_and_prune(&mut m.gaussians, &mut m.adam, &mut m.stats, &params, &mut rng);
             if !opacity_only {
                 let s = &mut self.static_set;
-                densify_and_prune(&mut s.gaussians, &mut s.adam, &mut s.stats, &params(size_limits), &mut rng);
+                densify_and_prune(&mut s.gaussians, &mut s.adam, &mut s.stats, &params, &mut rng);
             }
             if d.opacity_reset_interval > 0 && it.is_multiple_of(d.opacity_reset_interval) {
                 reset_opacity(&mut self.moving.gaussians, &mut self.moving.adam, 0.01);

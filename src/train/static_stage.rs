@@ -19,7 +19,7 @@ use crate::render::{backward, render, RenderOptions};
 use crate::splat::ply::PointCloud;
 use crate::splat::GaussianSet;
 use crate::train::config::StaticConfig;
-use crate::train::density::{densify_and_prune, reset_opacity, DensifyParams, DensifyReport, DensityStats};
+use crate::train::density::{densify_and_prune, reset_opacity, DensifyReport, DensityStats};
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr, ssim};
 use crate::train::optim::Adam;
@@ -62,6 +62,32 @@ pub(crate) fn rng_for(seed: u64, stream: u64, iteration: u64) -> ChaCha8Rng {
     rng
 }
 
+/// The view and background of 0-based iteration `iteration`: views in a fresh
+/// permutation per epoch; RGBA targets over a random colour when asked (the
+/// official --random_bg_color), else over the evaluation background. `streams`
+/// = (view order, background) random streams of the calling stage.
+pub(crate) fn pick_view(
+    views: &[TrainView],
+    seed: u64,
+    iteration: u32,
+    random_background: bool,
+    eval_background: [f32; 3],
+    streams: (u64, u64),
+) -> (&TrainView, Vec3) {
+    let n = views.len();
+    let epoch = iteration as usize / n;
+    let mut order: Vec<usize> = (0..n).collect();
+    order.shuffle(&mut rng_for(seed, streams.0, epoch as u64));
+    let view = &views[order[iteration as usize % n]];
+    let bg = if random_background && view.alpha.is_some() {
+        let mut rng = rng_for(seed, streams.1, u64::from(iteration) + 1);
+        Vec3::new(rng.random(), rng.random(), rng.random())
+    } else {
+        Vec3::from(eval_background)
+    };
+    (view, bg)
+}
+
 const STREAM_VIEWS: u64 = 1;
 const STREAM_BACKGROUND: u64 = 2;
 const STREAM_DENSIFY: u64 = 3;
@@ -95,14 +121,6 @@ impl GaussianTrainer {
         Ok(Self { extent: camera_extent(views), config, gaussians, adam, stats, iteration: 0 })
     }
 
-    /// The view trained at iteration `it`: a fresh permutation of all views per epoch.
-    fn view_index(&self, n_views: usize, it: u32) -> usize {
-        let epoch = it as usize / n_views;
-        let mut order: Vec<usize> = (0..n_views).collect();
-        order.shuffle(&mut rng_for(self.config.seed, STREAM_VIEWS, epoch as u64));
-        order[it as usize % n_views]
-    }
-
     /// SH degree in use at iteration `it` (raised every `sh_increase_interval`).
     pub fn active_sh_degree(&self, it: u32) -> u32 {
         let interval = self.config.sh_increase_interval.max(1);
@@ -112,13 +130,9 @@ impl GaussianTrainer {
     /// One optimisation step on one of `views`.
     pub fn step(&mut self, views: &[TrainView]) -> StepReport {
         let it = self.iteration + 1; // 1-based like 3DGS, so schedules match its numbers
-        let view = &views[self.view_index(views.len(), self.iteration)];
-        let bg = if self.config.random_background && view.alpha.is_some() {
-            let mut rng = rng_for(self.config.seed, STREAM_BACKGROUND, u64::from(it));
-            Vec3::new(rng.random(), rng.random(), rng.random())
-        } else {
-            Vec3::from(self.config.eval_background)
-        };
+        let c = &self.config;
+        let streams = (STREAM_VIEWS, STREAM_BACKGROUND);
+        let (view, bg) = pick_view(views, c.seed, self.iteration, c.random_background, c.eval_background, streams);
         let opts = RenderOptions { background: bg, sh_degree: Some(self.active_sh_degree(it)) };
         let r = render(&self.gaussians, &view.camera, &opts);
         let target = view.target(bg);
@@ -136,14 +150,7 @@ impl GaussianTrainer {
         self.adam.step(&mut self.gaussians, &grads.params, &lrs);
         if it < d.until_iter {
             if it > d.from_iter && it.is_multiple_of(d.interval) {
-                let params = DensifyParams {
-                    grad_threshold: d.grad_threshold,
-                    dense_size: d.percent_dense * self.extent,
-                    min_opacity: d.min_opacity,
-                    max_screen_size: (it > d.opacity_reset_interval).then_some(d.max_screen_size),
-                    max_world_size: (it > d.opacity_reset_interval).then_some(d.max_world_size * self.extent),
-                    max_gaussians: d.max_gaussians,
-                };
+                let params = d.densify_params(it, self.extent);
                 let mut rng = rng_for(self.config.seed, STREAM_DENSIFY, u64::from(it));
                 report.densified =
                     Some(densify_and_prune(&mut self.gaussians, &mut self.adam, &mut self.stats, &params, &mut rng));
