@@ -44,7 +44,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let mut train_cfg = StaticConfig::cpu();
     train_cfg.seed = args.seed;
-    let (train, test) = super::train_static::load_start_views(&data, train_cfg.resolution)?;
+    let (train, test) = super::train_static::load_phase_views(&data, aim_capture::Phase::Scan, train_cfg.resolution)?;
     println!("2/2 stage I (start-state 3DGS, preset cpu): {} training views, {} test views", train.len(), test.len());
     let bar = ProgressBar::new(u64::from(train_cfg.iterations));
     bar.set_style(

@@ -10,8 +10,6 @@ use indicatif::{ProgressBar, ProgressStyle};
 use aim::eval::{match_joints, ArticulationReport, GtJoint, PredictedJoint};
 use aim::motion::JointKind;
 use aim::train::dynamic_stage::{DualTrainer, DynamicConfig, PartEstimate};
-use aim::train::views::views_from_frames;
-use aim_capture::dataset::{load_aim_transforms, LoadOptions};
 use aim_capture::Phase;
 
 #[derive(clap::Args)]
@@ -63,19 +61,7 @@ pub fn train_and_analyse(
     out: &Path,
     cfg: DynamicConfig,
 ) -> anyhow::Result<(Vec<PartEstimate>, Option<ArticulationReport>)> {
-    let opts = LoadOptions { depth: false };
-    let train_path = dataset.join("motion").join("transforms_train.json");
-    let frames = load_aim_transforms(&train_path, Phase::Motion, &opts)?;
-    if frames.is_empty() {
-        bail!("{}: the frame list is empty", train_path.display());
-    }
-    let views = views_from_frames(&frames, cfg.resolution)?;
-    let test_path = dataset.join("motion").join("transforms_test.json");
-    let test = if test_path.exists() {
-        views_from_frames(&load_aim_transforms(&test_path, Phase::Motion, &opts)?, cfg.resolution)?
-    } else {
-        Vec::new()
-    };
+    let (views, test) = super::train_static::load_phase_views(dataset, Phase::Motion, cfg.resolution)?;
     let static_gs = aim::splat::ply::read_ply(static_ply)?;
     let iterations = cfg.iterations;
     let mut trainer = DualTrainer::new(cfg, static_gs, &views)?;

@@ -84,14 +84,22 @@ pub fn resolve_config(args: &Args) -> anyhow::Result<StaticConfig> {
     Ok(cfg)
 }
 
-/// Load the start-state views of an AiM-layout dataset, checking they agree in size.
-pub fn load_start_views(
+/// Load the train and test views of one phase folder of an AiM-layout dataset
+/// (`start` for Phase::Scan, `motion` for Phase::Motion), checking the training
+/// images agree in size.
+pub fn load_phase_views(
     dataset: &Path,
+    phase: Phase,
     width: u32,
 ) -> anyhow::Result<(Vec<aim::train::views::TrainView>, Vec<aim::train::views::TrainView>)> {
+    let folder = match phase {
+        Phase::Scan => "start",
+        Phase::Motion => "motion",
+        Phase::After => "end",
+    };
     let opts = LoadOptions { depth: false };
-    let train_path = dataset.join("start").join("transforms_train.json");
-    let frames = load_aim_transforms(&train_path, Phase::Scan, &opts)?;
+    let train_path = dataset.join(folder).join("transforms_train.json");
+    let frames = load_aim_transforms(&train_path, phase, &opts)?;
     if frames.is_empty() {
         bail!("{}: the frame list is empty", train_path.display());
     }
@@ -104,9 +112,8 @@ pub fn load_start_views(
             bad.image.height()
         );
     }
-    let test_path = dataset.join("start").join("transforms_test.json");
-    let test_frames =
-        if test_path.exists() { load_aim_transforms(&test_path, Phase::Scan, &opts)? } else { Vec::new() };
+    let test_path = dataset.join(folder).join("transforms_test.json");
+    let test_frames = if test_path.exists() { load_aim_transforms(&test_path, phase, &opts)? } else { Vec::new() };
     Ok((views_from_frames(&frames, width)?, views_from_frames(&test_frames, width)?))
 }
 
@@ -130,7 +137,7 @@ pub fn load_init_points(path: &Path) -> anyhow::Result<PointCloud> {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = resolve_config(&args)?;
-    let (train, test) = load_start_views(&args.dataset, cfg.resolution)?;
+    let (train, test) = load_phase_views(&args.dataset, Phase::Scan, cfg.resolution)?;
     tracing::info!(
         train = train.len(),
         test = test.len(),
