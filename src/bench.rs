@@ -95,10 +95,10 @@ fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32
         let bins = bin_tiles(&proj, w, h);
         t[1].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
-        let out = rasterize(&proj, &bins, w, h, opts.background);
+        let out = rasterize(&bins, w, h, opts.background);
         t[2].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
-        let (pg, _) = rasterize_backward(&proj, &bins, w, h, opts.background, &out, grad, None, None);
+        let (pg, _) = rasterize_backward(&bins, w, h, opts.background, &out, grad, None, None);
         t[3].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
         let raw = project_backward_all(gs, &proj, &pc, gs.sh_degree, &pg);
@@ -145,7 +145,7 @@ pub fn time_render(gs: &GaussianSet, cam: &Camera, repeats: usize) -> RenderBenc
     }
     let forward_ms = median(fwd);
     let (w, h) = (cam.width(), cam.height());
-    let evals = crate::render::raster::pixel_evaluations(&warm.projected, &warm.bins, w, h);
+    let evals = crate::render::raster::pixel_evaluations(&warm.bins, w, h);
     RenderBenchRow {
         resolution: w.max(h),
         gaussians: gs.len(),

@@ -89,7 +89,7 @@ pub fn render(gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> Ren
     let projected: Vec<_> = (0..gs.len()).into_par_iter().map(|i| project::project_one(gs, i, &pc, deg)).collect();
     let (w, h) = (camera.width(), camera.height());
     let bins = raster::bin_tiles(&projected, w, h);
-    let image = raster::rasterize(&projected, &bins, w, h, options.background);
+    let image = raster::rasterize(&bins, w, h, options.background);
     Render { width: w, height: h, camera: *camera, options: *options, sh_degree: deg, image, projected, bins }
 }
 
@@ -105,7 +105,6 @@ pub fn backward(
     let (w, h) = (fwd.width, fwd.height);
     assert_eq!(grad_color.len(), (3 * w * h) as usize, "colour gradient must match the image");
     let (proj_grads, bg) = raster::rasterize_backward(
-        &fwd.projected,
         &fwd.bins,
         w,
         h,

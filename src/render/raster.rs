@@ -20,18 +20,43 @@ pub const TRANSMITTANCE_MIN: f32 = 1e-4;
 /// Alpha is clamped here so (1 - alpha) never vanishes in the backward division.
 pub const ALPHA_MAX: f32 = 0.99;
 
-/// Per-tile lists of Gaussian indices, each in front-to-back order.
+/// What compositing reads of one visible Gaussian.
+#[derive(Clone, Copy, Debug)]
+pub struct Splat {
+    mean: Vec2,
+    conic: [f32; 3],
+    opacity: f32,
+    color: Vec3,
+    depth: f32,
+    bbox: [u32; 4],
+    span: [f32; 3],
+}
+
+impl Splat {
+    fn new(p: &Projected) -> Self {
+        let Projected { mean2d, conic, depth, color, opacity, bbox, span, .. } = *p;
+        Self { mean: mean2d, conic, opacity, color, depth, bbox, span }
+    }
+}
+
+/// The visible Gaussians in front-to-back order and per-tile lists into them.
 #[derive(Clone, Debug, Default)]
 pub struct TileBins {
     pub tiles_x: u32,
     pub tiles_y: u32,
-    /// `entries[offsets[t]..offsets[t + 1]]` are tile t's Gaussians.
+    /// Number of Gaussians rendered (visible or not): the length of gradient outputs.
+    pub gaussian_count: usize,
+    /// `splats[r]` is the r-th nearest visible Gaussian, `order[r]` its index in the set.
+    /// Tile lists hold these ranks, so each list reads `splats` front to back.
+    pub order: Vec<u32>,
+    splats: Vec<Splat>,
+    /// `entries[offsets[t]..offsets[t + 1]]` are tile t's ranks, ascending.
     pub offsets: Vec<u32>,
     pub entries: Vec<u32>,
 }
 
 impl TileBins {
-    pub fn tile(&self, t: usize) -> &[u32] {
+    fn tile(&self, t: usize) -> &[u32] {
         &self.entries[self.offsets[t] as usize..self.offsets[t + 1] as usize]
     }
 
@@ -47,20 +72,25 @@ impl TileBins {
     }
 }
 
-/// Bin visible Gaussians (`proj[i]` is Some) into tiles, front to back.
+/// Sort visible Gaussians (`proj[i]` is Some) front to back and bin them into tiles.
 pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBins {
     let tiles_x = width.div_ceil(TILE);
     let tiles_y = height.div_ceil(TILE);
-    let mut order: Vec<(f32, u32)> =
+    let mut by_depth: Vec<(f32, u32)> =
         proj.iter().enumerate().filter_map(|(i, p)| p.as_ref().map(|p| (p.depth, i as u32))).collect();
     // Unique keys (depth, index): the order is deterministic whatever the sort does.
-    order.par_sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    by_depth.par_sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let order: Vec<u32> = by_depth.iter().map(|&(_, i)| i).collect();
+    let splats: Vec<Splat> = order
+        .par_iter()
+        .map(|&i| Splat::new(proj[i as usize].as_ref().expect("sorted Gaussians are visible")))
+        .collect();
 
     let ntiles = (tiles_x * tiles_y) as usize;
     let mut counts = vec![0u32; ntiles + 1];
-    let tile_span = |p: &Projected| (p.bbox[0] / TILE, p.bbox[1] / TILE, p.bbox[2] / TILE, p.bbox[3] / TILE);
-    for &(_, i) in &order {
-        let (tx0, ty0, tx1, ty1) = tile_span(proj[i as usize].as_ref().expect("visible"));
+    let tile_span = |s: &Splat| (s.bbox[0] / TILE, s.bbox[1] / TILE, s.bbox[2] / TILE, s.bbox[3] / TILE);
+    for s in &splats {
+        let (tx0, ty0, tx1, ty1) = tile_span(s);
         for ty in ty0..=ty1 {
             for tx in tx0..=tx1 {
                 counts[(ty * tiles_x + tx) as usize + 1] += 1;
@@ -73,17 +103,17 @@ pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBin
     let offsets = counts;
     let mut fill = offsets.clone();
     let mut entries = vec![0u32; offsets[ntiles] as usize];
-    for &(_, i) in &order {
-        let (tx0, ty0, tx1, ty1) = tile_span(proj[i as usize].as_ref().expect("visible"));
+    for (rank, s) in splats.iter().enumerate() {
+        let (tx0, ty0, tx1, ty1) = tile_span(s);
         for ty in ty0..=ty1 {
             for tx in tx0..=tx1 {
                 let t = (ty * tiles_x + tx) as usize;
-                entries[fill[t] as usize] = i;
+                entries[fill[t] as usize] = rank as u32;
                 fill[t] += 1;
             }
         }
     }
-    TileBins { tiles_x, tiles_y, offsets, entries }
+    TileBins { tiles_x, tiles_y, gaussian_count: proj.len(), order, splats, offsets, entries }
 }
 
 /// Composited images plus what the backward pass needs.
@@ -109,104 +139,153 @@ fn clip_rows(bbox: &[u32; 4], r: &[u32; 4]) -> Option<(u32, u32)> {
     (bbox[0] < r[2] && bbox[2] >= r[0] && y0 < y1).then_some((y0, y1))
 }
 
-/// The pixels [x0, x1) of row `py` inside tile rect `r` where Gaussian `p` can
-/// reach ALPHA_MIN: the row's chord of the conservative ellipse power >= power_cut.
+const LANE_IDX: Lanes = Lanes::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
+
+/// Up to eight consecutive tile rows of one Gaussian: for each row (lane) the
+/// tile-local pixels [lo, hi) it can reach, i.e. the row's chord of the
+/// conservative ellipse power >= power_cut. Bit j of `rows` is set when row
+/// `row0 + j` has a non-empty chord.
+struct ChordBatch {
+    row0: u32,
+    rows: u32,
+    lo: [f32; LANES as usize],
+    hi: [f32; LANES as usize],
+}
+
+impl ChordBatch {
+    /// Rows `row0 + j` for the set bits j of `mask`, with their chords.
+    #[inline(always)]
+    fn each(&self, mut mask: u32, mut f: impl FnMut(u32, f32, f32)) {
+        while mask != 0 {
+            let j = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            f(self.row0 + j as u32, self.lo[j], self.hi[j]);
+        }
+    }
+}
+
+/// Call `f` with the chord batches of Gaussian `p` in tile rect `r`, top to bottom.
 #[inline(always)]
-fn row_span(p: &Projected, py: u32, r: &[u32; 4]) -> (u32, u32) {
+fn for_each_chord_batch(p: &Splat, r: &[u32; 4], mut f: impl FnMut(&ChordBatch, Lanes, Lanes)) {
+    let Some((y0, y1)) = clip_rows(&p.bbox, r) else { return };
     let [s0, s1, s2] = p.span;
-    let dy = p.mean2d.y - (py as f32 + 0.5);
-    let disc = s1 * dy * dy + s2;
-    if disc.is_nan() || disc < 0.0 {
-        return (0, 0);
+    let x0 = Lanes::splat(r[0] as f32);
+    let x1 = Lanes::splat(r[2] as f32);
+    let mut y = y0;
+    while y < y1 {
+        let dy = Lanes::splat(p.mean.y) - ((Lanes::splat(y as f32) + LANE_IDX) + Lanes::splat(0.5));
+        let disc = Lanes::splat(s1) * dy * dy + Lanes::splat(s2);
+        let root = disc.fast_max(Lanes::ZERO).sqrt();
+        let centre = Lanes::splat(-s0) * dy;
+        // dx = mean.x - (px + 0.5) ranges over centre -+ root; lo = ceil, hi = floor + 1
+        // (hi + 1 >= 0 after the clamp, so rounding down is floor).
+        let mx = Lanes::splat(p.mean.x);
+        let lo = (mx - (centre + root) - Lanes::splat(0.5)).fast_max(x0).fast_min(x1).ceil() - x0;
+        let hi = ((mx - (centre - root) - Lanes::splat(0.5)).fast_max(x0 - Lanes::ONE).fast_min(x1 - Lanes::ONE)
+            + Lanes::ONE)
+            .floor()
+            - x0;
+        let rows = disc.cmp_ge(Lanes::ZERO) & hi.cmp_gt(lo) & LANE_IDX.cmp_lt(Lanes::splat((y1 - y) as f32));
+        let batch = ChordBatch { row0: y - r[1], rows: rows.move_mask() as u32, lo: lo.to_array(), hi: hi.to_array() };
+        if batch.rows != 0 {
+            f(&batch, lo, hi);
+        }
+        y += LANES;
     }
-    let root = disc.sqrt();
-    let (dx_lo, dx_hi) = (-s0 * dy - root, -s0 * dy + root);
-    // dx = mean.x - (px + 0.5)
-    // Clamp to the tile first so the integer conversions below are exact.
-    let lo = (p.mean2d.x - dx_hi - 0.5).clamp(r[0] as f32, r[2] as f32);
-    let hi = (p.mean2d.x - dx_lo - 0.5).clamp(r[0] as f32 - 1.0, r[2] as f32 - 1.0);
-    // ceil(lo) and floor(hi) + 1 for non-negative values, without libm calls.
-    let lo_i = lo as u32 + u32::from((lo as u32 as f32) < lo);
-    let hi_i = (hi + 1.0) as u32;
-    if hi_i <= lo_i {
-        (0, 0)
-    } else {
-        (lo_i, hi_i)
-    }
+}
+
+/// Call `f(row, lo, hi)` for each tile row of rect `r` that Gaussian `p` can
+/// reach, with the row's chord (see [`ChordBatch`]).
+#[inline(always)]
+fn for_each_chord(p: &Splat, r: &[u32; 4], mut f: impl FnMut(u32, f32, f32)) {
+    for_each_chord_batch(p, r, |batch, _, _| batch.each(batch.rows, &mut f));
 }
 
 /// How many Gaussian-pixel evaluations a forward pass makes before early
 /// termination (the work measure the benchmark reports).
-pub fn pixel_evaluations(proj: &[Option<Projected>], bins: &TileBins, width: u32, height: u32) -> u64 {
+pub fn pixel_evaluations(bins: &TileBins, width: u32, height: u32) -> u64 {
     (0..bins.tile_count())
         .into_par_iter()
         .map(|t| {
             let rect = bins.tile_rect(t, width, height);
             let mut n = 0u64;
-            for &gi in bins.tile(t) {
-                let p = proj[gi as usize].as_ref().expect("binned Gaussians are visible");
-                let Some((y0, y1)) = clip_rows(&p.bbox, &rect) else { continue };
-                for py in y0..y1 {
-                    let (x0, x1) = row_span(p, py, &rect);
-                    n += u64::from(x1 - x0);
-                }
+            for &rank in bins.tile(t) {
+                for_each_chord(&bins.splats[rank as usize], &rect, |_, lo, hi| n += (hi - lo) as u64);
             }
             n
         })
         .sum()
 }
 
-/// Adjacent pixels of one tile row, as SIMD lanes.
-struct LaneGroup {
-    /// Index of the first lane in the tile's 16x16 state arrays.
-    l: usize,
-    /// Lanes inside the Gaussian's row span.
-    in_span: Lanes,
-    dx: Lanes,
-    dy: Lanes,
-    power: Lanes,
-}
-
-const LANE_IDX: Lanes = Lanes::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
-
-/// Visit the lane groups of row `py` that Gaussian `p` can reach in tile `rect`.
-#[inline(always)]
-fn for_each_lanes(p: &Projected, py: u32, rect: &[u32; 4], mut f: impl FnMut(&LaneGroup)) {
-    let (x0, x1) = row_span(p, py, rect);
-    if x0 >= x1 {
-        return;
+impl Splat {
+    /// Gaussian exponent on a lane group at offsets (dx, dy) from the mean.
+    #[inline(always)]
+    fn power(&self, dx: Lanes, dy: Lanes) -> Lanes {
+        let [a, b, c] = self.conic;
+        Lanes::splat(-0.5) * (Lanes::splat(a) * dx * dx + Lanes::splat(c) * dy * dy) - Lanes::splat(b) * dx * dy
     }
-    let (lx0, lx1) = ((x0 - rect[0]) as f32, (x1 - rect[0]) as f32);
-    let row = ((py - rect[1]) * TILE) as usize;
-    let dy = Lanes::splat(p.mean2d.y - (py as f32 + 0.5));
-    let [a, b, c] = p.conic;
-    let mut cx = (x0 - rect[0]) & !(LANES - 1);
-    while rect[0] + cx < x1 {
-        let lane_x = Lanes::splat(cx as f32) + LANE_IDX;
-        let in_span = lane_x.cmp_ge(Lanes::splat(lx0)) & lane_x.cmp_lt(Lanes::splat(lx1));
-        // Same operation order as the scalar definition, so results are bit-identical.
-        let px = Lanes::splat((rect[0] + cx) as f32) + LANE_IDX;
-        let dx = Lanes::splat(p.mean2d.x) - (px + Lanes::splat(0.5));
-        let power =
-            Lanes::splat(-0.5) * (Lanes::splat(a) * dx * dx + Lanes::splat(c) * dy * dy) - Lanes::splat(b) * dx * dy;
-        f(&LaneGroup { l: row + cx as usize, in_span, dx, dy, power });
-        cx += LANES;
+
+    /// The alpha on a lane group, the raw Gaussian value, and the lanes that
+    /// pass the skip rules (`live`, power <= 0, alpha >= ALPHA_MIN); None when
+    /// no lane passes (checked before the exp).
+    #[inline(always)]
+    fn alpha(&self, power: Lanes, live: Lanes) -> Option<(Lanes, Lanes, Lanes)> {
+        let live = live & power.cmp_le(Lanes::ZERO);
+        if live.none() {
+            return None;
+        }
+        let g = exp_nonpositive(power);
+        let alpha = (Lanes::splat(self.opacity) * g).min(Lanes::splat(ALPHA_MAX));
+        let valid = live & alpha.cmp_ge(Lanes::splat(ALPHA_MIN));
+        (!valid.none()).then_some((alpha, g, valid))
     }
 }
 
-/// The alpha of a Gaussian on a lane group, the raw Gaussian value, and the
-/// lanes that pass the skip rules (inside the span, `extra`, power <= 0,
-/// alpha >= ALPHA_MIN); None when no lane passes (checked before the exp).
+/// exp(x) for x <= 0, to a relative error under 4e-7 (above e^-87; 0 below).
+/// Cheaper than a general exp: no overflow handling, and a degree-5 fit of
+/// e^r on [-ln2/2, ln2/2] (coefficients fitted for this crate, relative error 1.7e-7).
 #[inline(always)]
-fn lane_alpha(p: &Projected, lanes: &LaneGroup, extra: Lanes) -> Option<(Lanes, Lanes, Lanes)> {
-    let live = lanes.in_span & extra & lanes.power.cmp_le(Lanes::ZERO);
-    if live.none() {
-        return None;
+pub(crate) fn exp_nonpositive(x: Lanes) -> Lanes {
+    const C: [f32; 5] = [0.999_999_5, 0.499_991_42, 0.166_681_14, 0.041_898_73, 0.008_261_531];
+    // Cody-Waite: x = n ln2 + r with ln2 split in two so r keeps its precision.
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    let x = x.fast_max(Lanes::splat(-87.0));
+    let n = (x * Lanes::splat(std::f32::consts::LOG2_E)).round();
+    let r = n.mul_neg_add(Lanes::splat(LN2_LO), n.mul_neg_add(Lanes::splat(LN2_HI), x));
+    // Estrin's scheme: a shorter dependency chain than Horner's.
+    let r2 = r * r;
+    let lo = Lanes::splat(C[1]).mul_add(r, Lanes::splat(C[0]));
+    let mid = Lanes::splat(C[3]).mul_add(r, Lanes::splat(C[2]));
+    let poly = Lanes::splat(C[4]).mul_add(r2, mid).mul_add(r2, lo);
+    let e_r = poly.mul_add(r, Lanes::ONE);
+    // 2^n from the float's exponent bits (n >= -126 after the clamp).
+    let scale: Lanes = bytemuck::cast((n.fast_round_int() + wide::i32x8::splat(127)) << 23);
+    e_r * scale
+}
+
+/// Visit the lane groups of tile row `row` that cover the chord [lo, hi) of
+/// Gaussian `p`: `f(l, in_span, dx, dy)` gets the group's first index in the
+/// tile's pixel arrays, the lanes inside the chord, and the offsets
+/// mean - pixel centre per lane.
+#[inline(always)]
+fn for_each_lane_group(
+    p: &Splat,
+    rect: &[u32; 4],
+    row: u32,
+    lo: f32,
+    hi: f32,
+    mut f: impl FnMut(usize, Lanes, Lanes, Lanes),
+) {
+    let dy = Lanes::splat(p.mean.y - ((rect[1] + row) as f32 + 0.5));
+    let mut x0 = lo as u32 & !(LANES - 1);
+    while (x0 as f32) < hi {
+        let lane_x = Lanes::splat(x0 as f32) + LANE_IDX;
+        let in_span = lane_x.cmp_ge(Lanes::splat(lo)) & lane_x.cmp_lt(Lanes::splat(hi));
+        let dx = Lanes::splat(p.mean.x) - (Lanes::splat((rect[0] + x0) as f32) + LANE_IDX + Lanes::splat(0.5));
+        f((row * TILE + x0) as usize, in_span, dx, dy);
+        x0 += LANES;
     }
-    let g = lanes.power.exp();
-    let alpha = (Lanes::splat(p.opacity) * g).min(Lanes::splat(ALPHA_MAX));
-    let valid = live & alpha.cmp_ge(Lanes::splat(ALPHA_MIN));
-    (!valid.none()).then_some((alpha, g, valid))
 }
 
 #[inline(always)]
@@ -237,13 +316,7 @@ struct TileResult {
 }
 
 /// Forward compositing over all tiles.
-pub fn rasterize(
-    proj: &[Option<Projected>],
-    bins: &TileBins,
-    width: u32,
-    height: u32,
-    background: Vec3,
-) -> RasterOutput {
+pub fn rasterize(bins: &TileBins, width: u32, height: u32, background: Vec3) -> RasterOutput {
     let results: Vec<TileResult> = (0..bins.tile_count())
         .into_par_iter()
         .map(|t| {
@@ -259,29 +332,26 @@ pub fn rasterize(
             let mut ndone = 0u32;
             // Pixels still compositing in each row, so finished rows are skipped whole.
             let mut row_live = [rect[2] - rect[0]; TILE as usize];
-            for (k, &gi) in bins.tile(t).iter().enumerate() {
-                let p = proj[gi as usize].as_ref().expect("binned Gaussians are visible");
-                let Some((y0, y1)) = clip_rows(&p.bbox, &rect) else { continue };
+            for (k, &rank) in bins.tile(t).iter().enumerate() {
+                let p = &bins.splats[rank as usize];
                 let (cr, cg, cb, z) =
                     (Lanes::splat(p.color.x), Lanes::splat(p.color.y), Lanes::splat(p.color.z), Lanes::splat(p.depth));
                 let k_next = Lanes::splat((k + 1) as f32);
-                for py in y0..y1 {
-                    let row = (py - rect[1]) as usize;
-                    if row_live[row] == 0 {
-                        continue;
+                for_each_chord(p, &rect, |row, lo, hi| {
+                    if row_live[row as usize] == 0 {
+                        return;
                     }
-                    for_each_lanes(p, py, &rect, |lanes| {
-                        let l = lanes.l;
+                    for_each_lane_group(p, &rect, row, lo, hi, |l, in_span, dx, dy| {
                         // A finished pixel keeps its transmittance negated (see below).
                         let t_now = ld(&res.t, l);
-                        let not_done = t_now.cmp_gt(Lanes::ZERO);
-                        let Some((alpha, _, valid)) = lane_alpha(p, lanes, not_done) else { return };
+                        let live = in_span & t_now.cmp_gt(Lanes::ZERO);
+                        let Some((alpha, _, valid)) = p.alpha(p.power(dx, dy), live) else { return };
                         let t_next = t_now * (Lanes::ONE - alpha);
                         let term = valid & t_next.cmp_lt(Lanes::splat(TRANSMITTANCE_MIN));
                         let contrib = valid & !term;
                         let finished = term.move_mask().count_ones();
                         ndone += finished;
-                        row_live[row] -= finished;
+                        row_live[row as usize] -= finished;
                         let w = contrib.blend(alpha * t_now, Lanes::ZERO);
                         for (acc, c) in res.color.iter_mut().zip([cr, cg, cb]) {
                             add(acc, l, c * w);
@@ -292,7 +362,7 @@ pub fn rasterize(
                         let last_now = ld(&res.last, l);
                         st(&mut res.last, l, contrib.blend(k_next, last_now));
                     });
-                }
+                });
                 if ndone == npix {
                     break;
                 }
@@ -333,7 +403,6 @@ pub fn rasterize(
 /// the background gradient, from dL/d(colour, alpha, depth) images.
 #[allow(clippy::too_many_arguments)]
 pub fn rasterize_backward(
-    proj: &[Option<Projected>],
     bins: &TileBins,
     width: u32,
     height: u32,
@@ -359,17 +428,18 @@ pub fn rasterize_backward(
         .enumerate()
         .map(|(t, grads)| {
             let g = TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth };
+            let tile = TileInput { t, bins, width, height, background, fwd };
             if grad_alpha.is_some() || grad_depth.is_some() {
-                backward_tile::<true>(t, grads, proj, bins, width, height, background, fwd, &g)
+                backward_tile::<true>(&tile, grads, &g)
             } else {
-                backward_tile::<false>(t, grads, proj, bins, width, height, background, fwd, &g)
+                backward_tile::<false>(&tile, grads, &g)
             }
         })
         .collect();
 
-    let mut per_gaussian = vec![ProjectedGrad::default(); proj.len()];
-    for (&gi, g) in bins.entries.iter().zip(&entry_grads) {
-        let acc = &mut per_gaussian[gi as usize];
+    let mut per_gaussian = vec![ProjectedGrad::default(); bins.gaussian_count];
+    for (&rank, g) in bins.entries.iter().zip(&entry_grads) {
+        let acc = &mut per_gaussian[bins.order[rank as usize] as usize];
         acc.mean2d += g.mean2d;
         for c in 0..3 {
             acc.conic[c] += g.conic[c];
@@ -382,6 +452,17 @@ pub fn rasterize_backward(
     (per_gaussian, bg)
 }
 
+/// One tile of a backward pass and the forward state it reads.
+#[derive(Clone, Copy)]
+struct TileInput<'a> {
+    t: usize,
+    bins: &'a TileBins,
+    width: u32,
+    height: u32,
+    background: Vec3,
+    fwd: &'a RasterOutput,
+}
+
 /// The image-space gradients the backward pass consumes.
 struct TileGrads<'a> {
     color: &'a [f32],
@@ -392,18 +473,8 @@ struct TileGrads<'a> {
 /// Backward of one tile, writing its list entries' gradients; returns its share
 /// of the background gradient. `AUX` = alpha or depth gradients are present
 /// (training from colour alone skips that arithmetic).
-#[allow(clippy::too_many_arguments)]
-fn backward_tile<const AUX: bool>(
-    t: usize,
-    grads: &mut [ProjectedGrad],
-    proj: &[Option<Projected>],
-    bins: &TileBins,
-    width: u32,
-    height: u32,
-    background: Vec3,
-    fwd: &RasterOutput,
-    g: &TileGrads,
-) -> Vec3 {
+fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads) -> Vec3 {
+    let TileInput { t, bins, width, height, background, fwd } = *tile;
     let rect = bins.tile_rect(t, width, height);
     let list = bins.tile(t);
     // Per-pixel state, back to front: transmittance before the current
@@ -441,24 +512,22 @@ fn backward_tile<const AUX: bool>(
         }
     }
     for k in (0..max_last as usize).rev() {
-        let p = proj[list[k] as usize].as_ref().expect("binned Gaussians are visible");
-        let Some((y0, y1)) = clip_rows(&p.bbox, &rect) else { continue };
-        let col = [Lanes::splat(p.color.x), Lanes::splat(p.color.y), Lanes::splat(p.color.z)];
-        let z = Lanes::splat(p.depth);
+        let sp = &bins.splats[list[k] as usize];
+        let col = [Lanes::splat(sp.color.x), Lanes::splat(sp.color.y), Lanes::splat(sp.color.z)];
+        let z = Lanes::splat(sp.depth);
         let kf = Lanes::splat(k as f32);
-        let [ca, cb, cc] = p.conic.map(Lanes::splat);
+        let [ca, cb, cc] = sp.conic.map(Lanes::splat);
         let mut acc_col = [Lanes::ZERO; 3];
         let (mut acc_d, mut acc_op) = (Lanes::ZERO, Lanes::ZERO);
         let (mut acc_mx, mut acc_my) = (Lanes::ZERO, Lanes::ZERO);
         let (mut acc_a, mut acc_b, mut acc_c) = (Lanes::ZERO, Lanes::ZERO, Lanes::ZERO);
-        for py in y0..y1 {
-            if k as u32 >= row_last[(py - rect[1]) as usize] {
-                continue;
+        for_each_chord(sp, &rect, |row, lo, hi| {
+            if k as u32 >= row_last[row as usize] {
+                return;
             }
-            for_each_lanes(p, py, &rect, |lanes| {
-                let l = lanes.l;
-                let composited = kf.cmp_lt(ld(&last, l));
-                let Some((alpha, gauss, valid)) = lane_alpha(p, lanes, composited) else { return };
+            for_each_lane_group(sp, &rect, row, lo, hi, |l, in_span, dx, dy| {
+                let composited = in_span & kf.cmp_lt(ld(&last, l));
+                let Some((alpha, gauss, valid)) = sp.alpha(sp.power(dx, dy), composited) else { return };
                 let inv_one_minus = Lanes::ONE / (Lanes::ONE - alpha);
                 let t_before = ld(&t_cur, l) * inv_one_minus;
                 let w = valid.blend(alpha * t_before, Lanes::ZERO);
@@ -481,18 +550,17 @@ fn backward_tile<const AUX: bool>(
                 let t_now = ld(&t_cur, l);
                 st(&mut t_cur, l, valid.blend(t_before, t_now));
                 // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
-                let free = valid & (Lanes::splat(p.opacity) * gauss).cmp_le(Lanes::splat(ALPHA_MAX));
+                let free = valid & (Lanes::splat(sp.opacity) * gauss).cmp_le(Lanes::splat(ALPHA_MAX));
                 let dl_da = free.blend(dl_da, Lanes::ZERO);
                 acc_op += dl_da * gauss;
                 let dl_dpower = dl_da * alpha;
-                let (dx, dy) = (lanes.dx, lanes.dy);
                 acc_mx += dl_dpower * (-(ca * dx) - cb * dy);
                 acc_my += dl_dpower * (-(cc * dy) - cb * dx);
                 acc_a += dl_dpower * (Lanes::splat(-0.5) * dx * dx);
                 acc_b += dl_dpower * (-(dx * dy));
                 acc_c += dl_dpower * (Lanes::splat(-0.5) * dy * dy);
             });
-        }
+        });
         grads[k] = ProjectedGrad {
             mean2d: Vec2::new(acc_mx.reduce_add(), acc_my.reduce_add()),
             conic: [acc_a.reduce_add(), acc_b.reduce_add(), acc_c.reduce_add()],
