@@ -11,7 +11,7 @@ use aim_capture::undistort::UndistortConfig;
 use aim_capture::Phase;
 
 fn vrs() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+    PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"))
         .join("../../shared/reference/aria/gen1/aria_everyday_activities_test_data/recording.vrs")
 }
 

@@ -6,7 +6,9 @@ use aim_capture::calib::{load_online_calibration, CameraModel};
 use aim_capture::mps::{HandTracking, Trajectory};
 
 fn mps(rel: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/reference/aria/gen1/mps_sample").join(rel)
+    PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"))
+        .join("../../shared/reference/aria/gen1/mps_sample")
+        .join(rel)
 }
 
 #[test]

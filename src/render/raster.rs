@@ -478,15 +478,17 @@ fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad],
     let rect = bins.tile_rect(t, width, height);
     let list = bins.tile(t);
     // Per-pixel state, back to front: transmittance before the current
-    // Gaussian, what lies behind it (colour and depth), and dL/d(outputs).
+    // Gaussian, last composited position, and dL/d(outputs). The colour and
+    // depth gradients are fixed per pixel, so what lies behind the current
+    // Gaussian enters only through its dot product with them:
+    // behind = sum_c dL/dC_c (colour behind)_c + dL/dD (depth behind).
     let mut t_cur = [0.0f32; TILE_PIXELS];
-    let mut behind = [[0.0f32; TILE_PIXELS]; 3];
-    let mut behind_d = [0.0f32; TILE_PIXELS];
+    let mut behind = [0.0f32; TILE_PIXELS];
     let mut last = [0.0f32; TILE_PIXELS];
     let mut gc = [[0.0f32; TILE_PIXELS]; 3];
-    let mut ga = [0.0f32; TILE_PIXELS];
     let mut gd = [0.0f32; TILE_PIXELS];
-    let mut t_final = [0.0f32; TILE_PIXELS];
+    // dL/d(alpha) times the final transmittance: d(alpha)/d(alpha_k) = T_final / (1 - alpha_k).
+    let mut ga_t = [0.0f32; TILE_PIXELS];
     let mut bg_grad = Vec3::ZERO;
     let mut max_last = 0u32;
     // Per row, one past the last list position any of its pixels composited.
@@ -497,17 +499,16 @@ fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad],
             let o = (py * width + px) as usize;
             let tf = fwd.final_t[o];
             t_cur[l] = tf;
-            t_final[l] = tf;
             last[l] = fwd.last[o] as f32;
             max_last = max_last.max(fwd.last[o]);
             let row = (py - rect[1]) as usize;
             row_last[row] = row_last[row].max(fwd.last[o]);
             for c in 0..3 {
-                behind[c][l] = background[c] * tf;
                 gc[c][l] = g.color[3 * o + c];
+                behind[l] += g.color[3 * o + c] * background[c] * tf;
                 bg_grad[c] += g.color[3 * o + c] * tf;
             }
-            ga[l] = g.alpha.map_or(0.0, |a| a[o]);
+            ga_t[l] = g.alpha.map_or(0.0, |a| a[o]) * tf;
             gd[l] = g.depth.map_or(0.0, |d| d[o]);
         }
     }
@@ -516,11 +517,12 @@ fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad],
         let col = [Lanes::splat(sp.color.x), Lanes::splat(sp.color.y), Lanes::splat(sp.color.z)];
         let z = Lanes::splat(sp.depth);
         let kf = Lanes::splat(k as f32);
-        let [ca, cb, cc] = sp.conic.map(Lanes::splat);
         let mut acc_col = [Lanes::ZERO; 3];
         let (mut acc_d, mut acc_op) = (Lanes::ZERO, Lanes::ZERO);
-        let (mut acc_mx, mut acc_my) = (Lanes::ZERO, Lanes::ZERO);
-        let (mut acc_a, mut acc_b, mut acc_c) = (Lanes::ZERO, Lanes::ZERO, Lanes::ZERO);
+        // Moments of dL/d(power) over the pixels (offsets dx, dy): the conic
+        // and 2D-mean gradients are linear in them.
+        let (mut m_x, mut m_y) = (Lanes::ZERO, Lanes::ZERO);
+        let (mut m_xx, mut m_xy, mut m_yy) = (Lanes::ZERO, Lanes::ZERO, Lanes::ZERO);
         for_each_chord(sp, &rect, |row, lo, hi| {
             if k as u32 >= row_last[row as usize] {
                 return;
@@ -529,41 +531,47 @@ fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad],
                 let composited = in_span & kf.cmp_lt(ld(&last, l));
                 let Some((alpha, gauss, valid)) = sp.alpha(sp.power(dx, dy), composited) else { return };
                 let inv_one_minus = Lanes::ONE / (Lanes::ONE - alpha);
-                let t_before = ld(&t_cur, l) * inv_one_minus;
+                let t_now = ld(&t_cur, l);
+                let t_before = t_now * inv_one_minus;
                 let w = valid.blend(alpha * t_before, Lanes::ZERO);
-                // d(out)/d(alpha) = value * T - (what lies behind) / (1 - alpha), per output.
-                let mut dl_da = if AUX { ld(&ga, l) * ld(&t_final, l) * inv_one_minus } else { Lanes::ZERO };
-                for c in 0..3 {
-                    let g = ld(&gc[c], l);
-                    let b = ld(&behind[c], l);
-                    dl_da += g * (col[c] * t_before - b * inv_one_minus);
-                    acc_col[c] += g * w;
-                    add(&mut behind[c], l, col[c] * w);
-                }
+                let gcol = [ld(&gc[0], l), ld(&gc[1], l), ld(&gc[2], l)];
+                // dL/d(this Gaussian's colour and depth values) . (colour, depth).
+                let mut value = gcol[0] * col[0] + gcol[1] * col[1] + gcol[2] * col[2];
                 if AUX {
                     let g_d = ld(&gd, l);
-                    let b_d = ld(&behind_d, l);
-                    dl_da += g_d * (z * t_before - b_d * inv_one_minus);
+                    value += g_d * z;
                     acc_d += g_d * w;
-                    add(&mut behind_d, l, z * w);
                 }
-                let t_now = ld(&t_cur, l);
+                for c in 0..3 {
+                    acc_col[c] += gcol[c] * w;
+                }
+                // d(out)/d(alpha) = value * T - (what lies behind) / (1 - alpha).
+                let behind_now = ld(&behind, l);
+                let mut dl_da = value * t_before - behind_now * inv_one_minus;
+                if AUX {
+                    dl_da += ld(&ga_t, l) * inv_one_minus;
+                }
+                st(&mut behind, l, value.mul_add(w, behind_now));
                 st(&mut t_cur, l, valid.blend(t_before, t_now));
                 // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
                 let free = valid & (Lanes::splat(sp.opacity) * gauss).cmp_le(Lanes::splat(ALPHA_MAX));
                 let dl_da = free.blend(dl_da, Lanes::ZERO);
                 acc_op += dl_da * gauss;
                 let dl_dpower = dl_da * alpha;
-                acc_mx += dl_dpower * (-(ca * dx) - cb * dy);
-                acc_my += dl_dpower * (-(cc * dy) - cb * dx);
-                acc_a += dl_dpower * (Lanes::splat(-0.5) * dx * dx);
-                acc_b += dl_dpower * (-(dx * dy));
-                acc_c += dl_dpower * (Lanes::splat(-0.5) * dy * dy);
+                let (u, v) = (dl_dpower * dx, dl_dpower * dy);
+                m_x += u;
+                m_y += v;
+                m_xx = u.mul_add(dx, m_xx);
+                m_xy = u.mul_add(dy, m_xy);
+                m_yy = v.mul_add(dy, m_yy);
             });
         });
+        // power = -(a dx^2 + c dy^2) / 2 - b dx dy with (dx, dy) = mean - pixel.
+        let [a, b, c] = sp.conic;
+        let (mx, my) = (m_x.reduce_add(), m_y.reduce_add());
         grads[k] = ProjectedGrad {
-            mean2d: Vec2::new(acc_mx.reduce_add(), acc_my.reduce_add()),
-            conic: [acc_a.reduce_add(), acc_b.reduce_add(), acc_c.reduce_add()],
+            mean2d: Vec2::new(-(a * mx + b * my), -(c * my + b * mx)),
+            conic: [-0.5 * m_xx.reduce_add(), -m_xy.reduce_add(), -0.5 * m_yy.reduce_add()],
             color: Vec3::new(acc_col[0].reduce_add(), acc_col[1].reduce_add(), acc_col[2].reduce_add()),
             opacity: acc_op.reduce_add(),
             depth: acc_d.reduce_add(),
