@@ -22,11 +22,15 @@ pub struct DeformConfig {
     pub width: usize,
     pub xyz_frequencies: usize,
     pub time_frequencies: usize,
+    /// Multiply both offsets by t, so the field is exactly zero at t = 0 and the
+    /// canonical set is the state at the start of the motion (docs/training.md).
+    #[serde(default)]
+    pub zero_at_start: bool,
 }
 
 impl Default for DeformConfig {
     fn default() -> Self {
-        Self { depth: 8, width: 256, xyz_frequencies: 10, time_frequencies: 6 }
+        Self { depth: 8, width: 256, xyz_frequencies: 10, time_frequencies: 6, zero_at_start: false }
     }
 }
 
@@ -123,6 +127,8 @@ const BLOCK: usize = 512;
 /// Forward activations kept for the backward pass.
 pub struct DeformCache {
     n: usize,
+    /// What the heads' outputs were multiplied by (t with `zero_at_start`, else 1).
+    output_scale: f32,
     /// Encoded input per row.
     input: Vec<f32>,
     /// Post-ReLU output of every hidden layer.
@@ -245,9 +251,16 @@ impl DeformNet {
             }
             out
         };
-        let d_xyz = head(&self.head_xyz);
-        let d_rot = head(&self.head_rot);
-        DeformOutput { d_xyz, d_rot, cache: DeformCache { n, input, hidden } }
+        let output_scale = if self.config.zero_at_start { t } else { 1.0 };
+        let scaled = |mut v: Vec<f32>| {
+            if output_scale != 1.0 {
+                v.iter_mut().for_each(|x| *x *= output_scale);
+            }
+            v
+        };
+        let d_xyz = scaled(head(&self.head_xyz));
+        let d_rot = scaled(head(&self.head_rot));
+        DeformOutput { d_xyz, d_rot, cache: DeformCache { n, output_scale, input, hidden } }
     }
 
     /// Gradient of the loss with respect to every parameter, from dL/d(d_xyz)
@@ -259,9 +272,11 @@ impl DeformNet {
         assert_eq!(grad_rot.len(), 4 * n);
         let mut grads = vec![0.0f32; self.params.len()];
         let last = cache.hidden.last().expect("depth >= 1");
+        let scaled = |g: &[f32]| g.iter().map(|v| v * cache.output_scale).collect::<Vec<f32>>();
+        let (grad_xyz, grad_rot) = (scaled(grad_xyz), scaled(grad_rot));
         // Heads: dW = h^T g, db = sum g, dh = g W^T.
         let mut dh = vec![0.0f32; n * w];
-        for (l, g) in [(&self.head_xyz, grad_xyz), (&self.head_rot, grad_rot)] {
+        for (l, g) in [(&self.head_xyz, &grad_xyz[..]), (&self.head_rot, &grad_rot[..])] {
             weight_gradient(last, g, n, w, l.outputs, &mut grads[l.weights()]);
             let db = column_sums(g, l.outputs);
             grads[l.biases()].copy_from_slice(&db);
@@ -346,7 +361,10 @@ mod tests {
     use super::*;
 
     fn small() -> DeformNet {
-        let mut net = DeformNet::new(DeformConfig { depth: 4, width: 12, xyz_frequencies: 3, time_frequencies: 2 }, 7);
+        let mut net = DeformNet::new(
+            DeformConfig { depth: 4, width: 12, xyz_frequencies: 3, time_frequencies: 2, zero_at_start: false },
+            7,
+        );
         // Heads at full scale so every layer's gradient is well above f32 noise.
         let (hx, hr) = (net.head_xyz, net.head_rot);
         for l in [hx, hr] {
@@ -375,33 +393,50 @@ mod tests {
 
     #[test]
     fn parameter_gradients_match_central_differences() {
-        let net = small();
-        let pts = points();
-        let n = pts.len() / 3;
-        let (gx, gr) = (weights(3 * n, 1), weights(4 * n, 2));
-        let out = net.forward(&pts, 0.4);
-        let analytic = net.backward(&out.cache, &gx, &gr);
-        // Every parameter of every layer, eps 1e-3 on O(0.3) weights, loss summed in
-        // f64. (At eps 1e-2 ReLU kinks flip inside the step and the hidden layers
-        // disagree by a few per cent; at 1e-3 every layer agrees within 0.3%.)
-        let eps = 1e-3f32;
-        let fd: Vec<f64> = (0..net.params.len())
-            .map(|j| {
-                let mut p = net.clone();
-                p.params[j] += eps;
-                let lp = loss(&p, &pts, &gx, &gr);
-                p.params[j] -= 2.0 * eps;
-                let lm = loss(&p, &pts, &gx, &gr);
-                (lp - lm) / (2.0 * eps as f64)
-            })
-            .collect();
-        for l in net.layers.iter().chain([&net.head_xyz, &net.head_rot]) {
-            let range = l.offset..l.offset + l.len();
-            let err: f64 = range.clone().map(|j| (fd[j] - analytic[j] as f64).powi(2)).sum::<f64>().sqrt();
-            let norm: f64 = range.map(|j| fd[j] * fd[j]).sum::<f64>().sqrt();
-            assert!(norm > 1e-3, "{l:?}: gradient too small to test");
-            assert!(err / norm < 3e-3, "{l:?}: relative gradient error {}", err / norm);
+        for zero_at_start in [false, true] {
+            let mut net = small();
+            net.config.zero_at_start = zero_at_start;
+            let pts = points();
+            let n = pts.len() / 3;
+            let (gx, gr) = (weights(3 * n, 1), weights(4 * n, 2));
+            let out = net.forward(&pts, 0.4);
+            let analytic = net.backward(&out.cache, &gx, &gr);
+            // Every parameter of every layer, eps 1e-3 on O(0.3) weights, loss summed in
+            // f64. (At eps 1e-2 ReLU kinks flip inside the step and the hidden layers
+            // disagree by a few per cent; at 1e-3 every layer agrees within 0.3%.)
+            let eps = 1e-3f32;
+            let fd: Vec<f64> = (0..net.params.len())
+                .map(|j| {
+                    let mut p = net.clone();
+                    p.params[j] += eps;
+                    let lp = loss(&p, &pts, &gx, &gr);
+                    p.params[j] -= 2.0 * eps;
+                    let lm = loss(&p, &pts, &gx, &gr);
+                    (lp - lm) / (2.0 * eps as f64)
+                })
+                .collect();
+            for l in net.layers.iter().chain([&net.head_xyz, &net.head_rot]) {
+                let range = l.offset..l.offset + l.len();
+                let err: f64 = range.clone().map(|j| (fd[j] - analytic[j] as f64).powi(2)).sum::<f64>().sqrt();
+                let norm: f64 = range.map(|j| fd[j] * fd[j]).sum::<f64>().sqrt();
+                assert!(norm > 1e-3, "{l:?}: gradient too small to test");
+                assert!(
+                    err / norm < 3e-3,
+                    "{l:?} (zero_at_start {zero_at_start}): relative gradient error {}",
+                    err / norm
+                );
+            }
         }
+    }
+
+    #[test]
+    fn zero_at_start_leaves_the_start_state_in_place() {
+        let mut net = small();
+        net.config.zero_at_start = true;
+        let out = net.forward(&points(), 0.0);
+        assert!(out.d_xyz.iter().chain(&out.d_rot).all(|v| *v == 0.0));
+        let later = net.forward(&points(), 0.5);
+        assert!(later.d_xyz.iter().any(|v| *v != 0.0));
     }
 
     #[test]

@@ -1,14 +1,16 @@
 //! `aim demo [--object fridge] [--out out/demo]`: the built-in end-to-end job on
-//! a synthetic object with exact ground truth. It runs the stages that exist
-//! reliably today: generate the benchmark dataset, train the start-state 3DGS
-//! (stage I) and report its quality against the held-out views. Stages II and III
-//! (`aim train-dynamic`) join the demo once their joints are accurate.
+//! a synthetic object with exact ground truth: generate the benchmark dataset,
+//! train the start-state 3DGS (stage I), then the dual Gaussians on the motion
+//! video (stage II) and find the parts and joints (stage III), printing the
+//! joints and their errors against the ground truth. All at the cpu presets.
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
 use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
+
+use aim::train::dynamic_stage::DynamicConfig;
 
 use aim::synth::{objects, write_dataset, SynthConfig};
 use aim::train::config::StaticConfig;
@@ -19,7 +21,7 @@ pub struct Args {
     /// Synthetic object (see `aim synth --list`).
     #[arg(long, default_value = "fridge")]
     pub object: String,
-    /// Output folder: data/ (the dataset) and static/ (the stage I run).
+    /// Output folder: data/ (the dataset), static/ (stage I) and dynamic/ (stages II and III).
     #[arg(long, default_value = "out/demo")]
     pub out: PathBuf,
     #[arg(long, default_value_t = 0)]
@@ -32,7 +34,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let object = objects::object(&args.object)?;
     let data = args.out.join("data");
     let cfg = SynthConfig { seed: args.seed, ..Default::default() };
-    println!("1/2 synthetic {} ({} parts) -> {}", args.object, object.parts.len(), data.display());
+    println!("1/3 synthetic {} ({} parts) -> {}", args.object, object.parts.len(), data.display());
     let bar = ProgressBar::new(0);
     bar.set_style(ProgressStyle::with_template("{bar:30} {pos}/{len} views [{elapsed_precise}]").expect("template"));
     let summary = write_dataset(&object, &data, &cfg, &|done, total| {
@@ -45,22 +47,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut train_cfg = StaticConfig::cpu();
     train_cfg.seed = args.seed;
     let (train, test) = super::train_static::load_phase_views(&data, aim_capture::Phase::Scan, train_cfg.resolution)?;
-    println!("2/2 stage I (start-state 3DGS, preset cpu): {} training views, {} test views", train.len(), test.len());
-    let bar = ProgressBar::new(u64::from(train_cfg.iterations));
-    bar.set_style(
-        ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}").expect("template"),
-    );
+    println!("2/3 stage I (start-state 3DGS, preset cpu): {} training views, {} test views", train.len(), test.len());
+    let bar = super::progress::Progress::new("stage I", train_cfg.iterations);
     let never = AtomicBool::new(false);
     let viz = args.rerun.open()?;
     let run_dir = args.out.join("static");
     let setup = RunSetup { run_dir: &run_dir, resume: false, init: None };
     let outcome = run_static(train_cfg, &train, &test, &setup, &never, &viz, |r| {
-        bar.set_position(u64::from(r.iteration));
-        if r.iteration % 20 == 0 {
-            bar.set_message(format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians));
-        }
+        bar.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians));
     })?;
-    bar.finish_and_clear();
+    bar.finish();
     let RunOutcome::Finished(m) = outcome else { bail!("stage I was interrupted") };
     println!(
         "    {} Gaussians, test PSNR {:.2} dB, SSIM {:.4} over {} held-out views, {:.1} s",
@@ -83,9 +79,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             j.range
         );
     }
+    let mut dyn_cfg = DynamicConfig::cpu();
+    dyn_cfg.seed = args.seed;
     println!(
-        "not run here yet: stages II and III (`aim train-dynamic`) do not yet recover joints accurately; \
-         see docs/training.md"
+        "3/3 stages II and III (dual Gaussians on the motion video, then parts and joints; preset cpu, {} iterations)",
+        dyn_cfg.iterations
     );
+    let static_ply = args.out.join("static").join("static.ply");
+    let control = super::train_dynamic::RunControl { resume: false, interrupt: &never };
+    let Some((parts, report)) =
+        super::train_dynamic::train_and_analyse(&data, &static_ply, &args.out.join("dynamic"), dyn_cfg, &control)?
+    else {
+        bail!("stage II was interrupted")
+    };
+    super::train_dynamic::print_joints(&parts, report.as_ref());
     Ok(())
 }

@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod capture;
 pub mod demo;
+pub mod progress;
 pub mod render;
 pub mod synth;
 pub mod synth_recording;

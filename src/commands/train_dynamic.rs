@@ -5,11 +5,15 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use indicatif::{ProgressBar, ProgressStyle};
 
 use aim::eval::{match_joints, ArticulationReport, GtJoint, PredictedJoint};
 use aim::motion::JointKind;
-use aim::train::dynamic_stage::{DualTrainer, DynamicConfig, PartEstimate};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use aim::train::dynamic_stage::{
+    load_checkpoint, save_checkpoint, DualTrainer, DynamicConfig, PartEstimate, StageTwoViews,
+};
 use aim_capture::Phase;
 
 #[derive(clap::Args)]
@@ -24,10 +28,16 @@ pub struct Args {
     pub out: PathBuf,
     #[arg(long, default_value = "cpu")]
     pub preset: String,
+    /// TOML over a preset (it names its `preset`; any key of docs/training.md's stage II table).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
     #[arg(long)]
     pub iterations: Option<u32>,
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Continue from OUT/checkpoint.bin (written every `checkpoint_interval` iterations and on Ctrl-C).
+    #[arg(long)]
+    pub resume: bool,
 }
 
 /// Ground-truth joints of a synthetic dataset, if it has them.
@@ -54,42 +64,79 @@ pub fn load_gt(dataset: &Path) -> anyhow::Result<Option<Vec<GtJoint>>> {
     ))
 }
 
-/// Train stages II and III; returns the parts and the report against GT if any.
+/// Where a stage II run continues from and when it stops early.
+pub struct RunControl<'a> {
+    /// Continue from OUT/checkpoint.bin when it exists.
+    pub resume: bool,
+    /// Raised (Ctrl-C) to checkpoint and stop.
+    pub interrupt: &'a AtomicBool,
+}
+
+/// Train stages II and III into `out`, checkpointing as configured; returns the
+/// parts and the report against GT if any, or None when interrupted (after
+/// writing the checkpoint).
 pub fn train_and_analyse(
     dataset: &Path,
     static_ply: &Path,
     out: &Path,
     cfg: DynamicConfig,
-) -> anyhow::Result<(Vec<PartEstimate>, Option<ArticulationReport>)> {
-    let (views, test) = super::train_static::load_phase_views(dataset, Phase::Motion, cfg.resolution)?;
-    let static_gs = aim::splat::ply::read_ply(static_ply)?;
-    let iterations = cfg.iterations;
-    let mut trainer = DualTrainer::new(cfg, static_gs, &views)?;
-    let bar = ProgressBar::new(u64::from(iterations));
-    bar.set_style(
-        ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}").expect("template"),
-    );
+    control: &RunControl,
+) -> anyhow::Result<Option<(Vec<PartEstimate>, Option<ArticulationReport>)>> {
+    let (motion, test) = super::train_static::load_phase_views(dataset, Phase::Motion, cfg.resolution)?;
+    let (start, _) = super::train_static::load_phase_views(dataset, Phase::Scan, cfg.resolution)?;
+    // The end state is optional: a capture may stop right after the motion.
+    let end = if dataset.join("end").join("transforms_train.json").exists() {
+        super::train_static::load_phase_views(dataset, Phase::After, cfg.resolution)?.0
+    } else {
+        Vec::new()
+    };
+    let views = StageTwoViews::new(motion, start, end)?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let checkpoint = out.join("checkpoint.bin");
+    let mut trainer = if control.resume && checkpoint.exists() {
+        let (t, _) = load_checkpoint(&checkpoint)?;
+        if t.config != cfg {
+            tracing::warn!("{}: trained with another configuration; continuing with its own", checkpoint.display());
+        }
+        tracing::info!(iteration = t.iteration, "resuming from {}", checkpoint.display());
+        t
+    } else {
+        DualTrainer::new(cfg, aim::splat::ply::read_ply(static_ply)?, &views)?
+    };
+    let (iterations, interval) = (trainer.config.iterations, trainer.config.checkpoint_interval);
+    let bar = super::progress::Progress::new("stage II", iterations);
     while trainer.iteration < iterations {
+        if control.interrupt.load(Ordering::SeqCst) {
+            bar.finish();
+            save_checkpoint(&checkpoint, &trainer, 0.0)?;
+            println!(
+                "interrupted at iteration {}; checkpoint written to {} (continue with --resume)",
+                trainer.iteration,
+                checkpoint.display()
+            );
+            return Ok(None);
+        }
         let s = trainer.step(&views);
+        if interval > 0 && s.iteration.is_multiple_of(interval) {
+            save_checkpoint(&checkpoint, &trainer, 0.0)?;
+        }
         if let Some(bad) = trainer.moving.gaussians.first_non_finite() {
             bail!("stage II diverged at iteration {}: non-finite {bad:?}", s.iteration);
         }
-        bar.set_position(u64::from(s.iteration));
-        if s.iteration % 20 == 0 {
-            bar.set_message(format!(
-                "psnr {:.2} static {} moving {}{}",
-                s.psnr,
-                s.static_count,
-                s.moving_count,
-                if s.sdmd_moved > 0 { format!(" (SDMD moved {})", s.sdmd_moved) } else { String::new() }
-            ));
+        if s.sdmd_moved > 0 {
+            tracing::info!(
+                iteration = s.iteration,
+                moved = s.sdmd_moved,
+                "SDMD handed motionless groups to the static set"
+            );
         }
+        bar.update(s.iteration, || format!("psnr {:.2} static {} moving {}", s.psnr, s.static_count, s.moving_count));
     }
-    bar.finish_and_clear();
+    bar.finish();
+    save_checkpoint(&checkpoint, &trainer, 0.0)?;
     if !test.is_empty() {
         println!("    motion test PSNR {:.2} dB over {} held-out frames", trainer.evaluate(&test), test.len());
     }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     aim::splat::ply::write_ply(&out.join("moving.ply"), &trainer.moving.gaussians)?;
     aim::splat::ply::write_ply(&out.join("static_pruned.ply"), &trainer.static_set.gaussians)?;
     let net = postcard::to_stdvec(&trainer.net).context("encoding the deformation network")?;
@@ -104,7 +151,7 @@ pub fn train_and_analyse(
             .collect();
         match_joints(&pred, &gt)
     });
-    Ok((parts, report))
+    Ok(Some((parts, report)))
 }
 
 /// Print the estimated joints and, with ground truth, their errors.
@@ -145,14 +192,29 @@ pub fn print_joints(parts: &[PartEstimate], report: Option<&ArticulationReport>)
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut cfg = DynamicConfig::preset(&args.preset)?;
+    let mut cfg = match &args.config {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            DynamicConfig::from_toml(&text, p)?
+        }
+        None => DynamicConfig::preset(&args.preset)?,
+    };
     if let Some(n) = args.iterations {
         cfg.iterations = n;
     }
     if let Some(s) = args.seed {
         cfg.seed = s;
     }
-    let (parts, report) = train_and_analyse(&args.dataset, &args.static_ply, &args.out, cfg)?;
-    print_joints(&parts, report.as_ref());
+    cfg.validate().map_err(|e| anyhow::anyhow!("invalid configuration: {e}"))?;
+    let interrupt = Arc::new(AtomicBool::new(false));
+    {
+        let flag = interrupt.clone();
+        // A second Ctrl-C is not caught again: the handler only raises the flag.
+        let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    }
+    let control = RunControl { resume: args.resume, interrupt: &interrupt };
+    if let Some((parts, report)) = train_and_analyse(&args.dataset, &args.static_ply, &args.out, cfg, &control)? {
+        print_joints(&parts, report.as_ref());
+    }
     Ok(())
 }

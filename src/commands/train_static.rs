@@ -5,7 +5,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use anyhow::{bail, Context};
-use indicatif::{ProgressBar, ProgressStyle};
 
 use aim::splat::ply::PointCloud;
 use aim::train::config::StaticConfig;
@@ -152,23 +151,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         // A second Ctrl-C is not caught again: the handler only raises the flag.
         let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
     }
-    let bar = ProgressBar::new(u64::from(cfg.iterations));
-    bar.set_style(
-        ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}")
-            .expect("valid template"),
-    );
+    let bar = super::progress::Progress::new("stage I", cfg.iterations);
     let mut ema_psnr = 0.0f32;
     let viz = args.rerun.open()?;
     let init = args.init_points.as_deref().map(load_init_points).transpose()?;
     let setup = RunSetup { run_dir: &args.out, resume: args.resume, init: init.as_ref() };
     let outcome = run_static(cfg, &train, &test, &setup, &interrupt, &viz, |r| {
         ema_psnr = if ema_psnr == 0.0 { r.psnr } else { 0.9 * ema_psnr + 0.1 * r.psnr };
-        bar.set_position(u64::from(r.iteration));
-        if r.iteration % 10 == 0 {
-            bar.set_message(format!("loss {:.4} psnr {:.2} gaussians {}", r.loss, ema_psnr, r.gaussians));
-        }
+        bar.update(r.iteration, || format!("loss {:.4} psnr {:.2} gaussians {}", r.loss, ema_psnr, r.gaussians));
     })?;
-    bar.finish_and_clear();
+    bar.finish();
     match outcome {
         RunOutcome::Finished(m) => {
             println!(

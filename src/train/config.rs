@@ -192,16 +192,9 @@ impl StaticConfig {
         }
     }
 
-    /// Parse TOML over a preset: the file names its `preset` (default cpu) and
-    /// overrides any key; unknown keys are rejected with their name.
+    /// Parse TOML over a preset (see [`config_from_toml`]).
     pub fn from_toml(text: &str, path: &std::path::Path) -> Result<Self> {
-        let value: toml::Value = toml::from_str(text).map_err(|e| Error::bad_file(path, e.to_string()))?;
-        let preset = value.get("preset").and_then(|v| v.as_str()).unwrap_or("cpu");
-        let mut base = toml::Value::try_from(Self::preset(preset)?).map_err(|e| Error::Other(e.to_string()))?;
-        merge(&mut base, value);
-        let cfg: Self = base.try_into().map_err(|e: toml::de::Error| Error::bad_file(path, e.to_string()))?;
-        cfg.validate().map_err(|e| Error::bad_file(path, e))?;
-        Ok(cfg)
+        config_from_toml(text, path, Self::preset, Self::validate)
     }
 
     /// Range checks, naming the key.
@@ -256,6 +249,24 @@ impl StaticConfig {
         }
         Ok(())
     }
+}
+
+/// Parse a stage configuration from TOML over a preset: the file names its
+/// `preset` (default cpu) and overrides any key; unknown keys are rejected with
+/// their name, and `validate` names the key of any value out of range.
+pub fn config_from_toml<T: Serialize + serde::de::DeserializeOwned>(
+    text: &str,
+    path: &std::path::Path,
+    preset: impl Fn(&str) -> Result<T>,
+    validate: impl Fn(&T) -> std::result::Result<(), String>,
+) -> Result<T> {
+    let value: toml::Value = toml::from_str(text).map_err(|e| Error::bad_file(path, e.to_string()))?;
+    let name = value.get("preset").and_then(|v| v.as_str()).unwrap_or("cpu");
+    let mut base = toml::Value::try_from(preset(name)?).map_err(|e| Error::Other(e.to_string()))?;
+    merge(&mut base, value);
+    let cfg: T = base.try_into().map_err(|e: toml::de::Error| Error::bad_file(path, e.to_string()))?;
+    validate(&cfg).map_err(|e| Error::bad_file(path, e))?;
+    Ok(cfg)
 }
 
 /// Overlay `over` onto `base` table by table (keys absent from `base` stay, so

@@ -7,6 +7,7 @@
 //! on the moving set.
 
 use glam::{DVec3, Vec3};
+use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::deform::{DeformConfig, DeformNet};
@@ -19,7 +20,8 @@ use crate::train::density::{densify_and_prune, remove, reset_opacity, DensitySta
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr};
 use crate::train::optim::{Adam, AdamBuffer, ExponLr, LearningRates};
-use crate::train::static_stage::{pick_view, rng_for};
+use crate::train::rigidity::{rigidity_loss, RigidityConfig};
+use crate::train::static_stage::{background_for, epoch_order_index, rng_for};
 use crate::train::views::{camera_extent, TrainView};
 
 /// Stage II settings. Defaults from the paper; the official code's values where
@@ -38,8 +40,12 @@ pub struct DynamicConfig {
     pub static_opacity_only_iterations: u32,
     /// Static Gaussians whose opacity falls below this are pruned (online pruning).
     pub static_prune_opacity: f32,
-    /// Random initial moving Gaussians in the box (official 50k).
+    /// How the moving set starts, and how many Gaussians it starts with (official: 50k random).
+    pub moving_init: MovingInit,
     pub moving_init_points: usize,
+    /// With `StartState`: this many random points in the init box as well, to
+    /// take on content the start state never saw (a fridge's inside).
+    pub moving_init_random_points: usize,
     pub init_box_min: [f32; 3],
     pub init_box_max: [f32; 3],
     pub deform: DeformConfig,
@@ -47,6 +53,29 @@ pub struct DynamicConfig {
     pub deform_lr_final: f32,
     /// SDMD every this many iterations after the opacity-only phase (paper 2000, official 500; 0 = off).
     pub sdmd_interval: u32,
+    /// While the static set trains opacities only, train on the motion frames at
+    /// or after this time (official code: time > 0.5). Moved parts are then well
+    /// away from their start pose, so their start-state Gaussians fade instead of
+    /// being kept alive by early frames in which nothing has moved yet.
+    pub prune_phase_min_time: f32,
+    /// Grow the training frames' time window [0, T] from T = `time_window_start`
+    /// to 1 over this many iterations (0 = off; it then takes the place of
+    /// `prune_phase_min_time`). Large motions are learnt from small ones: the
+    /// photometric gradient only sees displacements of about a Gaussian's size.
+    pub time_curriculum_iterations: u32,
+    pub time_window_start: f32,
+    /// After that phase, each pass over the motion video also trains this many
+    /// random start-state views (at time 0) ...
+    pub start_views_per_epoch: usize,
+    /// ... and this many end-state views (at time 1), when the capture has them
+    /// (official code: 5 and 10).
+    pub end_views_per_epoch: usize,
+    /// Weight of mean |d_xyz| + mean |d_rot| from the warm-up until one SDMD
+    /// interval after the opacity-only phase (official code: 1e-3). Keeps the
+    /// canonical moving set near where it is observed while the motion is learnt.
+    pub deform_magnitude_weight: f32,
+    /// Local rigidity of the deformation between random times (docs/training.md).
+    pub rigidity: RigidityConfig,
     /// Groups rotating at most this (radians) ...
     pub sdmd_max_rotation: f64,
     /// ... and translating at most this (world units) between t = 0 and 1 are static.
@@ -56,6 +85,8 @@ pub struct DynamicConfig {
     pub random_background: bool,
     pub eval_background: [f32; 3],
     pub lr: LrConfig,
+    /// Write a checkpoint every this many iterations (0 = only at the end and on interrupt).
+    pub checkpoint_interval: u32,
     /// Density control of the moving set (and of both sets after the opacity-only phase).
     pub density: DensityConfig,
 }
@@ -71,13 +102,22 @@ impl DynamicConfig {
             warmup_iterations: 3000,
             static_opacity_only_iterations: 10_000,
             static_prune_opacity: 0.005,
+            moving_init: MovingInit::Random,
             moving_init_points: 50_000,
+            moving_init_random_points: 0,
             init_box_min: [-0.5; 3],
             init_box_max: [0.5; 3],
             deform: DeformConfig::default(),
             deform_lr_init: 8e-4,
             deform_lr_final: 1.6e-6,
             sdmd_interval: 2000,
+            prune_phase_min_time: 0.5,
+            time_curriculum_iterations: 0,
+            time_window_start: 0.1,
+            start_views_per_epoch: 5,
+            end_views_per_epoch: 10,
+            deform_magnitude_weight: 1e-3,
+            rigidity: RigidityConfig::default(),
             sdmd_max_rotation: 0.1,
             sdmd_max_translation: 0.05,
             ransac: RansacConfig::default(),
@@ -85,21 +125,28 @@ impl DynamicConfig {
             random_background: true,
             eval_background: [1.0; 3],
             lr: s.lr,
+            checkpoint_interval: 500,
             density: DensityConfig { from_iter: 500, until_iter: 30_000, ..s.density },
         }
     }
 
-    /// Practical on two cores: lower resolution, fewer iterations and points, a
-    /// smaller network (docs/training.md).
+    /// Practical on two cores: lower resolution, fewer iterations, a smaller
+    /// network, and, because 4000 iterations are too few for the paper's random
+    /// start to learn a large motion, a moving set that starts as a copy of part
+    /// of the start state with the field anchored at t = 0, trained on a growing
+    /// time window (docs/training.md has the measurements behind this).
     pub fn cpu() -> Self {
         let mut c = Self::paper();
         c.preset = "cpu".into();
         c.iterations = 4000;
         c.resolution = 128;
-        c.warmup_iterations = 300;
+        c.warmup_iterations = 0;
         c.static_opacity_only_iterations = 1500;
-        c.moving_init_points = 5000;
-        c.deform = DeformConfig { depth: 4, width: 128, xyz_frequencies: 10, time_frequencies: 6 };
+        c.time_curriculum_iterations = 1500;
+        c.moving_init = MovingInit::StartState;
+        c.moving_init_points = 10_000;
+        c.deform_magnitude_weight = 0.0;
+        c.deform = DeformConfig { depth: 4, width: 128, xyz_frequencies: 10, time_frequencies: 6, zero_at_start: true };
         c.sdmd_interval = 500;
         c.density.from_iter = 300;
         c.density.until_iter = 3200;
@@ -117,6 +164,72 @@ impl DynamicConfig {
             other => Err(Error::Config(format!("unknown preset '{other}' (valid: paper, cpu)"))),
         }
     }
+
+    /// Parse TOML over a preset (see [`crate::train::config::config_from_toml`]).
+    pub fn from_toml(text: &str, path: &std::path::Path) -> Result<Self> {
+        crate::train::config::config_from_toml(text, path, Self::preset, Self::validate)
+    }
+
+    /// Range checks, naming the key.
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        if self.iterations == 0 {
+            return Err("iterations must be at least 1".into());
+        }
+        if self.warmup_iterations >= self.iterations {
+            return Err("warmup_iterations must be below iterations".into());
+        }
+        if self.moving_init_points == 0 {
+            return Err("moving_init_points must be at least 1".into());
+        }
+        if !(0.0..=1.0).contains(&self.time_window_start) {
+            return Err(format!("time_window_start must be in [0, 1], got {}", self.time_window_start));
+        }
+        if !(0.0..=1.0).contains(&self.prune_phase_min_time) {
+            return Err(format!("prune_phase_min_time must be in [0, 1], got {}", self.prune_phase_min_time));
+        }
+        if !(0.0..1.0).contains(&self.static_prune_opacity) {
+            return Err(format!("static_prune_opacity must be in [0, 1), got {}", self.static_prune_opacity));
+        }
+        for (k, v) in [
+            ("deform_lr_init", self.deform_lr_init),
+            ("deform_lr_final", self.deform_lr_final),
+            ("lr.means_init", self.lr.means_init),
+            ("lr.opacity", self.lr.opacity),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{k} must be a positive number, got {v}"));
+            }
+        }
+        for (k, v) in [("deform_magnitude_weight", self.deform_magnitude_weight), ("lambda_dssim", self.lambda_dssim)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{k} must be >= 0, got {v}"));
+            }
+        }
+        if self.deform.depth == 0 || self.deform.width == 0 {
+            return Err("deform.depth and deform.width must be at least 1".into());
+        }
+        if self.density.interval == 0 {
+            return Err("density.interval must be at least 1".into());
+        }
+        for i in 0..3 {
+            if self.init_box_min[i].partial_cmp(&self.init_box_max[i]) != Some(std::cmp::Ordering::Less) {
+                return Err(format!("init_box_min[{i}] must be below init_box_max[{i}]"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How stage II's moving set starts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MovingInit {
+    /// Random points in the init box (the paper, following Deformable-3DGS).
+    Random,
+    /// A random subset of the start-state Gaussians: with `deform.zero_at_start`
+    /// each begins exactly where the start state has it, so the moving parts
+    /// only have to learn where they go.
+    StartState,
 }
 
 /// A Gaussian set with its optimizer state and density statistics.
@@ -167,7 +280,33 @@ pub struct PartEstimate {
     pub motion: Rigid,
 }
 
-/// Both sets, the deformation network and their optimizers.
+/// The views stage II trains on: the motion video, and multi-view frames of the
+/// start and end states when the capture has them (trained at times 0 and 1).
+pub struct StageTwoViews {
+    pub motion: Vec<TrainView>,
+    pub start: Vec<TrainView>,
+    pub end: Vec<TrainView>,
+}
+
+impl StageTwoViews {
+    /// Checks that there is a motion video with times; gives the start and end
+    /// views times 0 and 1.
+    pub fn new(motion: Vec<TrainView>, mut start: Vec<TrainView>, mut end: Vec<TrainView>) -> Result<Self> {
+        if motion.is_empty() {
+            return Err(Error::Config("no motion views".into()));
+        }
+        if motion.iter().any(|v| v.time.is_none()) {
+            return Err(Error::Config("every motion view needs a time".into()));
+        }
+        start.iter_mut().for_each(|v| v.time = Some(0.0));
+        end.iter_mut().for_each(|v| v.time = Some(1.0));
+        Ok(Self { motion, start, end })
+    }
+}
+
+/// Both sets, the deformation network and their optimizers: the whole state of
+/// a stage II run (what a checkpoint holds).
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct DualTrainer {
     pub config: DynamicConfig,
     pub static_set: OptimizedSet,
@@ -178,13 +317,56 @@ pub struct DualTrainer {
     pub extent: f32,
 }
 
-/// Random streams of stage II's view order and backgrounds.
-const STAGE_II_STREAMS: (u64, u64) = (11, 12);
+/// Random streams of stage II: view order, backgrounds, densification, and the
+/// start and end views drawn into each epoch.
+const STREAM_VIEWS: u64 = 11;
+const STREAM_BACKGROUND: u64 = 12;
+const STREAM_DENSIFY: u64 = 13;
+const STREAM_START_VIEWS: u64 = 14;
+const STREAM_END_VIEWS: u64 = 15;
+const STREAM_RIGIDITY: u64 = 16;
+const STREAM_MOVING_INIT: u64 = 17;
 
 /// Moving Gaussians below this opacity are left out of SDMD and stage III.
 const ANALYSIS_MIN_OPACITY: f32 = 0.1;
 /// Smallest part, as a fraction of the analysed moving Gaussians.
 const MIN_PART_FRACTION: f64 = 0.02;
+
+const CHECKPOINT_STAGE: &str = "stage II";
+
+/// Write the trainer's full state atomically.
+pub fn save_checkpoint(path: &std::path::Path, trainer: &DualTrainer, elapsed_s: f64) -> Result<()> {
+    crate::train::checkpoint::save(path, CHECKPOINT_STAGE, trainer, elapsed_s)
+}
+
+/// Read a checkpoint written by [`save_checkpoint`].
+pub fn load_checkpoint(path: &std::path::Path) -> Result<(DualTrainer, f64)> {
+    crate::train::checkpoint::load(path, CHECKPOINT_STAGE, |t: &DualTrainer| {
+        for (name, set) in [("static", &t.static_set), ("moving", &t.moving)] {
+            set.gaussians.check_shapes().map_err(|m| format!("{name} set: {m}"))?;
+            if set.adam.len() != set.gaussians.len() || set.stats.len() != set.gaussians.len() {
+                return Err(format!("{name} set: optimizer or density state does not match the Gaussians"));
+            }
+        }
+        if t.net.params.len() != DeformNet::new(t.net.config.clone(), 0).parameter_count()
+            || t.net_adam.m.len() != t.net.params.len()
+            || t.net_adam.v.len() != t.net.params.len()
+        {
+            return Err("the deformation network does not match its configuration".into());
+        }
+        Ok(())
+    })
+}
+
+/// Add `weight` times the gradient of sum_i |x_i| (rows of `dim` floats of `x`) to `grad`.
+fn add_norm_gradient(grad: &mut [f32], x: &[f32], dim: usize, weight: f32) {
+    for (g, v) in grad.chunks_exact_mut(dim).zip(x.chunks_exact(dim)) {
+        let norm = v.iter().map(|a| a * a).sum::<f32>().sqrt();
+        if norm > 1e-12 {
+            g.iter_mut().zip(v).for_each(|(g, a)| *g += weight * a / norm);
+        }
+    }
+}
 
 /// Motion time in [0, 1] as the network's time input (the one place the mapping lives).
 pub fn network_time(t: f32) -> f32 {
@@ -193,24 +375,41 @@ pub fn network_time(t: f32) -> f32 {
 
 impl DualTrainer {
     /// Start from a trained static set.
-    pub fn new(config: DynamicConfig, static_gaussians: GaussianSet, views: &[TrainView]) -> Result<Self> {
-        if views.is_empty() {
-            return Err(Error::Config("no motion views".into()));
-        }
-        if views.iter().any(|v| v.time.is_none()) {
-            return Err(Error::Config("every motion view needs a time".into()));
-        }
-        let pts = random_points(
-            config.moving_init_points,
-            Vec3::from(config.init_box_min),
-            Vec3::from(config.init_box_max),
-            config.seed ^ 0x5eed,
-        );
-        let moving = gaussians_from_points(&pts, None, 0.1, static_gaussians.sh_degree);
+    pub fn new(config: DynamicConfig, static_gaussians: GaussianSet, views: &StageTwoViews) -> Result<Self> {
+        let moving = match config.moving_init {
+            MovingInit::Random => {
+                let pts = random_points(
+                    config.moving_init_points,
+                    Vec3::from(config.init_box_min),
+                    Vec3::from(config.init_box_max),
+                    config.seed ^ 0x5eed,
+                );
+                gaussians_from_points(&pts, None, 0.1, static_gaussians.sh_degree)
+            }
+            MovingInit::StartState => {
+                let n = static_gaussians.len();
+                let mut keep = vec![false; n];
+                let mut rng = rng_for(config.seed, STREAM_MOVING_INIT, 0);
+                for i in rand::seq::index::sample(&mut rng, n, config.moving_init_points.min(n)) {
+                    keep[i] = true;
+                }
+                let mut moving = static_gaussians.subset(&keep);
+                if config.moving_init_random_points > 0 {
+                    let pts = random_points(
+                        config.moving_init_random_points,
+                        Vec3::from(config.init_box_min),
+                        Vec3::from(config.init_box_max),
+                        config.seed ^ 0x5eed,
+                    );
+                    moving.extend_from(&gaussians_from_points(&pts, None, 0.1, static_gaussians.sh_degree));
+                }
+                moving
+            }
+        };
         let net = DeformNet::new(config.deform.clone(), config.seed);
         let net_adam = AdamBuffer::zeros(net.parameter_count());
         Ok(Self {
-            extent: camera_extent(views),
+            extent: camera_extent(&views.motion),
             static_set: OptimizedSet::new(static_gaussians),
             moving: OptimizedSet::new(moving),
             net,
@@ -244,12 +443,52 @@ impl DualTrainer {
         u
     }
 
-    /// One optimisation step on one of the motion `views`.
-    pub fn step(&mut self, views: &[TrainView]) -> DynamicStep {
+    /// The view of 1-based iteration `it`. During the opacity-only phase: the
+    /// motion frames from `prune_phase_min_time` on. After it: epochs of the whole
+    /// motion video plus a few start and end views drawn per epoch.
+    fn view_for<'v>(&self, it: u32, views: &'v StageTwoViews) -> &'v TrainView {
+        let c = &self.config;
+        if it <= c.time_curriculum_iterations {
+            let f = it as f32 / c.time_curriculum_iterations as f32;
+            let limit = c.time_window_start + (1.0 - c.time_window_start) * f;
+            let early: Vec<&TrainView> = views.motion.iter().filter(|v| v.time.is_some_and(|t| t <= limit)).collect();
+            if !early.is_empty() {
+                return early[epoch_order_index(early.len(), c.seed, it - 1, STREAM_VIEWS)];
+            }
+        }
+        if it <= c.static_opacity_only_iterations && c.time_curriculum_iterations == 0 {
+            let late: Vec<&TrainView> =
+                views.motion.iter().filter(|v| v.time.is_some_and(|t| t >= c.prune_phase_min_time)).collect();
+            return if late.is_empty() {
+                &views.motion[epoch_order_index(views.motion.len(), c.seed, it - 1, STREAM_VIEWS)]
+            } else {
+                late[epoch_order_index(late.len(), c.seed, it - 1, STREAM_VIEWS)]
+            };
+        }
+        let local = it - 1 - c.static_opacity_only_iterations;
+        let n_start = c.start_views_per_epoch.min(views.start.len());
+        let n_end = c.end_views_per_epoch.min(views.end.len());
+        let pool = views.motion.len() + n_start + n_end;
+        let k = epoch_order_index(pool, c.seed, local, STREAM_VIEWS);
+        let epoch = u64::from(local) / pool as u64;
+        let drawn = |set: &'v [TrainView], n: usize, stream: u64, i: usize| {
+            let picks = rand::seq::index::sample(&mut rng_for(c.seed, stream, epoch), set.len(), n);
+            &set[picks.index(i)]
+        };
+        match k.checked_sub(views.motion.len()) {
+            None => &views.motion[k],
+            Some(i) if i < n_start => drawn(&views.start, n_start, STREAM_START_VIEWS, i),
+            Some(i) => drawn(&views.end, n_end, STREAM_END_VIEWS, i - n_start),
+        }
+    }
+
+    /// One optimisation step.
+    pub fn step(&mut self, views: &StageTwoViews) -> DynamicStep {
         let it = self.iteration + 1;
         let c = &self.config;
-        let (view, bg) =
-            pick_view(views, c.seed, self.iteration, c.random_background, c.eval_background, STAGE_II_STREAMS);
+        let view = self.view_for(it, views);
+        let bg =
+            background_for(view, c.seed, self.iteration, c.random_background, c.eval_background, STREAM_BACKGROUND);
         let t = view.time.unwrap_or(0.0);
 
         let deforming = it > self.config.warmup_iterations;
@@ -273,7 +512,15 @@ impl DualTrainer {
         // The deformed mean is mean + d(sg(mean)): the canonical mean and the offset
         // receive the same gradient (likewise the rotation).
         if let Some(d) = &deform {
-            let g_net = self.net.backward(&d.cache, &g_moving.means, &g_moving.rotations);
+            let (mut g_dxyz, mut g_drot) = (g_moving.means.clone(), g_moving.rotations.clone());
+            let regularise = it <= self.config.static_opacity_only_iterations + self.config.sdmd_interval.max(1);
+            if regularise && self.config.deform_magnitude_weight > 0.0 {
+                let w = self.config.deform_magnitude_weight / nm.max(1) as f32;
+                add_norm_gradient(&mut g_dxyz, &d.d_xyz, 3, w);
+                add_norm_gradient(&mut g_drot, &d.d_rot, 4, w);
+            }
+            let mut g_net = self.net.backward(&d.cache, &g_dxyz, &g_drot);
+            self.add_rigidity_gradient(it, &mut g_net);
             let lr = ExponLr {
                 lr_init: self.config.deform_lr_init,
                 lr_final: self.config.deform_lr_final,
@@ -300,7 +547,7 @@ impl DualTrainer {
 
         if it < d.until_iter && it > d.from_iter && it.is_multiple_of(d.interval) {
             let params = d.densify_params(it, self.extent);
-            let mut rng = rng_for(self.config.seed, 13, u64::from(it));
+            let mut rng = rng_for(self.config.seed, STREAM_DENSIFY, u64::from(it));
             let m = &mut self.moving;
             densify_and_prune(&mut m.gaussians, &mut m.adam, &mut m.stats, &params, &mut rng);
             if !opacity_only {
@@ -336,6 +583,25 @@ impl DualTrainer {
             moving_count: self.moving.gaussians.len(),
             sdmd_moved,
         }
+    }
+
+    /// Add the rigidity term's network gradient at iteration `it` (every
+    /// `rigidity.interval` iterations, scaled by it): a random sample of the
+    /// moving set between two random times.
+    fn add_rigidity_gradient(&self, it: u32, g_net: &mut [f32]) {
+        let r = &self.config.rigidity;
+        let nm = self.moving.gaussians.len();
+        if r.weight <= 0.0 || r.interval == 0 || !it.is_multiple_of(r.interval) || nm < 2 {
+            return;
+        }
+        let mut rng = rng_for(self.config.seed, STREAM_RIGIDITY, u64::from(it));
+        let picks = rand::seq::index::sample(&mut rng, nm, r.samples.min(nm));
+        let means: Vec<f32> =
+            picks.iter().flat_map(|i| self.moving.gaussians.means[3 * i..3 * i + 3].iter().copied()).collect();
+        let (t_a, t_b) = (rng.random::<f32>(), rng.random::<f32>());
+        let (_, g) = rigidity_loss(&self.net, &means, network_time(t_a), network_time(t_b), r.neighbours, r.scale);
+        let w = r.weight * r.interval as f32;
+        g_net.iter_mut().zip(g).for_each(|(acc, v)| *acc += w * v);
     }
 
     /// Centres at t = 0, 0.5, 1 of the moving Gaussians that are visible enough to
@@ -438,27 +704,30 @@ mod tests {
     use aim_capture::dataset::{load_aim_transforms, LoadOptions};
     use aim_capture::Phase;
 
-    fn motion_views(name: &str) -> Vec<TrainView> {
+    fn motion_views(name: &str) -> StageTwoViews {
         let dir = std::env::temp_dir().join(format!("aim-dyn-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let cfg = SynthConfig {
             resolution: 32,
             scan_views: 2,
             motion_frames: 12,
-            end_views: 1,
+            end_views: 3,
             test_views: 1,
             motion_test_every: 0,
             samples_per_pixel: 1,
             ..Default::default()
         };
         write_dataset(&crate::synth::object("storage").expect("object"), &dir, &cfg, &|_, _| {}).expect("written");
-        let frames = load_aim_transforms(
-            &dir.join("motion").join("transforms_train.json"),
-            Phase::Motion,
-            &LoadOptions { depth: false },
-        )
-        .expect("loads");
-        views_from_frames(&frames, 0).expect("views")
+        let load = |folder: &str, phase: Phase| {
+            let path = dir.join(folder).join("transforms_train.json");
+            let frames = load_aim_transforms(&path, phase, &LoadOptions { depth: false }).expect("loads");
+            views_from_frames(&frames, 0).expect("views")
+        };
+        let views =
+            StageTwoViews::new(load("motion", Phase::Motion), load("start", Phase::Scan), load("end", Phase::After))
+                .expect("motion views");
+        let _ = std::fs::remove_dir_all(&dir);
+        views
     }
 
     fn small_config() -> DynamicConfig {
@@ -468,7 +737,7 @@ mod tests {
         c.moving_init_points = 400;
         c.warmup_iterations = 5;
         c.static_opacity_only_iterations = 20;
-        c.deform = DeformConfig { depth: 2, width: 16, xyz_frequencies: 2, time_frequencies: 2 };
+        c.deform = DeformConfig { depth: 2, width: 16, xyz_frequencies: 2, time_frequencies: 2, zero_at_start: false };
         c
     }
 
@@ -519,5 +788,104 @@ mod tests {
         assert_eq!(t.static_set.adam.len(), t.static_set.gaussians.len());
         assert_eq!(t.moving.stats.len(), t.moving.gaussians.len());
         assert!(t.analyse().0.is_empty(), "no moving parts remain");
+    }
+
+    #[test]
+    fn view_schedule_follows_the_phases() {
+        let views = motion_views("schedule");
+        let times = |c: DynamicConfig, its: std::ops::RangeInclusive<u32>| {
+            let t = DualTrainer::new(c, static_set(), &views).expect("trainer");
+            its.map(|it| t.view_for(it, &views).time.expect("timed")).collect::<Vec<f32>>()
+        };
+        // Growing window: early iterations see only early frames, and it reaches 1.
+        let mut c = small_config();
+        c.time_curriculum_iterations = 40;
+        c.time_window_start = 0.1;
+        c.static_opacity_only_iterations = 40;
+        let ts = times(c, 1..=40);
+        for (i, t) in ts.iter().enumerate() {
+            let limit = 0.1 + 0.9 * (i + 1) as f32 / 40.0;
+            assert!(*t <= limit + 1e-6, "iteration {}: time {t} beyond the window {limit}", i + 1);
+        }
+        assert!(ts[30..].iter().any(|t| *t > 0.7), "the window grows");
+        // The paper's schedule: late frames only while the static set trains opacities.
+        let mut c = small_config();
+        c.time_curriculum_iterations = 0;
+        c.static_opacity_only_iterations = 30;
+        assert!(times(c.clone(), 1..=30).iter().all(|t| *t >= c.prune_phase_min_time));
+        // Afterwards start (time 0) and end (time 1) views join the motion frames.
+        c.start_views_per_epoch = 2;
+        c.end_views_per_epoch = 3;
+        let after = times(c, 31..=31 + 4 * 17);
+        let starts = after.iter().filter(|t| **t == 0.0).count();
+        let ends = after.iter().filter(|t| **t == 1.0).count();
+        assert!(starts >= 2 * 4 && ends >= 3 * 4, "start views {starts}, end views {ends} over 4 epochs");
+    }
+
+    #[test]
+    fn start_state_init_begins_on_the_start_state() {
+        let views = motion_views("startinit");
+        let mut c = small_config();
+        c.moving_init = MovingInit::StartState;
+        c.moving_init_points = 100;
+        c.deform.zero_at_start = true;
+        let start = static_set();
+        let t = DualTrainer::new(c, start.clone(), &views).expect("trainer");
+        assert_eq!(t.moving.gaussians.len(), 100);
+        let at0 = t.moving_at(0.0);
+        for i in 0..at0.len() {
+            assert!(
+                (0..start.len()).any(|j| start.mean(j) == at0.mean(i)),
+                "moving Gaussian {i} is a start-state copy"
+            );
+        }
+        assert_ne!(t.moving_at(0.5).means, at0.means, "the field moves them later");
+    }
+
+    #[test]
+    fn resuming_from_a_checkpoint_is_bit_identical() {
+        let views = motion_views("resume");
+        let mut c = small_config();
+        c.sdmd_interval = 10;
+        let mut straight = DualTrainer::new(c.clone(), static_set(), &views).expect("trainer");
+        for _ in 0..30 {
+            straight.step(&views);
+        }
+        let mut first = DualTrainer::new(c, static_set(), &views).expect("trainer");
+        for _ in 0..15 {
+            first.step(&views);
+        }
+        let path = std::env::temp_dir().join(format!("aim-dyn-ckpt-{}.bin", std::process::id()));
+        save_checkpoint(&path, &first, 1.5).expect("saved");
+        let (mut resumed, elapsed) = load_checkpoint(&path).expect("loads");
+        assert_eq!(elapsed, 1.5);
+        for _ in 0..15 {
+            resumed.step(&views);
+        }
+        assert_eq!(resumed.moving.gaussians, straight.moving.gaussians);
+        assert_eq!(resumed.static_set.gaussians, straight.static_set.gaussians);
+        assert_eq!(resumed.net.params, straight.net.params);
+        // A stage I checkpoint is refused by name.
+        crate::train::checkpoint::save(&path, "stage I", &0u32, 0.0).expect("saved");
+        let e = load_checkpoint(&path).unwrap_err().to_string();
+        assert!(e.contains("stage I") && e.contains(&path.display().to_string()), "{e}");
+        let _ = std::fs::remove_file(&path);
+    }
+
+    #[test]
+    fn toml_overrides_the_preset_and_names_unknown_keys() {
+        let c = DynamicConfig::from_toml(
+            "preset = \"cpu\"\niterations = 77\n[deform]\nwidth = 64\n",
+            std::path::Path::new("d.toml"),
+        )
+        .expect("parses");
+        assert_eq!((c.iterations, c.deform.width, c.resolution), (77, 64, DynamicConfig::cpu().resolution));
+        let e =
+            DynamicConfig::from_toml("sdmd_intervall = 3\n", std::path::Path::new("d.toml")).unwrap_err().to_string();
+        assert!(e.contains("d.toml") && e.contains("sdmd_intervall"), "{e}");
+        let e = DynamicConfig::from_toml("time_window_start = 2.0\n", std::path::Path::new("d.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("time_window_start"), "{e}");
     }
 }

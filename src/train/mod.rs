@@ -1,10 +1,12 @@
 //! Training: losses, the optimizer, density control, and the stages.
 
+pub mod checkpoint;
 pub mod config;
 pub mod density;
 pub mod dynamic_stage;
 pub mod init;
 pub mod loss;
 pub mod optim;
+pub mod rigidity;
 pub mod static_stage;
 pub mod views;

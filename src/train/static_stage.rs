@@ -62,10 +62,37 @@ pub(crate) fn rng_for(seed: u64, stream: u64, iteration: u64) -> ChaCha8Rng {
     rng
 }
 
+/// Position in a fresh per-epoch permutation of `n` items at 0-based `iteration`
+/// (epoch = iteration / n), drawn from random stream `stream`.
+pub(crate) fn epoch_order_index(n: usize, seed: u64, iteration: u32, stream: u64) -> usize {
+    let epoch = iteration as usize / n;
+    let mut order: Vec<usize> = (0..n).collect();
+    order.shuffle(&mut rng_for(seed, stream, epoch as u64));
+    order[iteration as usize % n]
+}
+
+/// The background of 0-based iteration `iteration`: RGBA targets over a random
+/// colour when asked (the official --random_bg_color), else over the evaluation
+/// background.
+pub(crate) fn background_for(
+    view: &TrainView,
+    seed: u64,
+    iteration: u32,
+    random_background: bool,
+    eval_background: [f32; 3],
+    stream: u64,
+) -> Vec3 {
+    if random_background && view.alpha.is_some() {
+        let mut rng = rng_for(seed, stream, u64::from(iteration) + 1);
+        Vec3::new(rng.random(), rng.random(), rng.random())
+    } else {
+        Vec3::from(eval_background)
+    }
+}
+
 /// The view and background of 0-based iteration `iteration`: views in a fresh
-/// permutation per epoch; RGBA targets over a random colour when asked (the
-/// official --random_bg_color), else over the evaluation background. `streams`
-/// = (view order, background) random streams of the calling stage.
+/// permutation per epoch, backgrounds as [`background_for`]. `streams` = (view
+/// order, background) random streams of the calling stage.
 pub(crate) fn pick_view(
     views: &[TrainView],
     seed: u64,
@@ -74,18 +101,8 @@ pub(crate) fn pick_view(
     eval_background: [f32; 3],
     streams: (u64, u64),
 ) -> (&TrainView, Vec3) {
-    let n = views.len();
-    let epoch = iteration as usize / n;
-    let mut order: Vec<usize> = (0..n).collect();
-    order.shuffle(&mut rng_for(seed, streams.0, epoch as u64));
-    let view = &views[order[iteration as usize % n]];
-    let bg = if random_background && view.alpha.is_some() {
-        let mut rng = rng_for(seed, streams.1, u64::from(iteration) + 1);
-        Vec3::new(rng.random(), rng.random(), rng.random())
-    } else {
-        Vec3::from(eval_background)
-    };
-    (view, bg)
+    let view = &views[epoch_order_index(views.len(), seed, iteration, streams.0)];
+    (view, background_for(view, seed, iteration, random_background, eval_background, streams.1))
 }
 
 const STREAM_VIEWS: u64 = 1;
@@ -217,40 +234,22 @@ impl RunPaths {
     }
 }
 
-/// Version tag of the checkpoint layout.
-const CHECKPOINT_FORMAT: u32 = 1;
-
-#[derive(Serialize, Deserialize)]
-struct Checkpoint {
-    format: u32,
-    trainer: GaussianTrainer,
-    /// Wall time spent before this checkpoint (seconds), so metrics add up over resumes.
-    elapsed_s: f64,
-}
+const CHECKPOINT_STAGE: &str = "stage I";
 
 /// Write the trainer's full state atomically.
 pub fn save_checkpoint(path: &Path, trainer: &GaussianTrainer, elapsed_s: f64) -> Result<()> {
-    let bytes = postcard::to_stdvec(&Checkpoint { format: CHECKPOINT_FORMAT, trainer: trainer.clone(), elapsed_s })
-        .map_err(|e| Error::Other(format!("encoding checkpoint: {e}")))?;
-    write_atomic(path, &bytes)
+    crate::train::checkpoint::save(path, CHECKPOINT_STAGE, trainer, elapsed_s)
 }
 
 /// Read a checkpoint written by [`save_checkpoint`].
 pub fn load_checkpoint(path: &Path) -> Result<(GaussianTrainer, f64)> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let ck: Checkpoint =
-        postcard::from_bytes(&bytes).map_err(|e| Error::bad_file(path, format!("not a stage I checkpoint: {e}")))?;
-    if ck.format != CHECKPOINT_FORMAT {
-        return Err(Error::bad_file(
-            path,
-            format!("checkpoint format {} (this build reads {CHECKPOINT_FORMAT})", ck.format),
-        ));
-    }
-    ck.trainer.gaussians.check_shapes().map_err(|m| Error::bad_file(path, m))?;
-    if ck.trainer.adam.len() != ck.trainer.gaussians.len() || ck.trainer.stats.len() != ck.trainer.gaussians.len() {
-        return Err(Error::bad_file(path, "optimizer or density state does not match the Gaussians"));
-    }
-    Ok((ck.trainer, ck.elapsed_s))
+    crate::train::checkpoint::load(path, CHECKPOINT_STAGE, |t: &GaussianTrainer| {
+        t.gaussians.check_shapes()?;
+        if t.adam.len() != t.gaussians.len() || t.stats.len() != t.gaussians.len() {
+            return Err("optimizer or density state does not match the Gaussians".into());
+        }
+        Ok(())
+    })
 }
 
 /// Summary written to metrics.json.
