@@ -9,6 +9,7 @@ pub mod camera;
 pub mod deform;
 pub mod error;
 pub mod eval;
+pub mod export;
 pub mod motion;
 pub mod render;
 pub mod splat;

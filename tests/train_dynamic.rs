@@ -51,12 +51,27 @@ fn train_dynamic_runs_from_a_stage_one_result_and_writes_its_outputs() {
     assert!(dy.status.success(), "{}", String::from_utf8_lossy(&dy.stderr));
     let stdout = String::from_utf8_lossy(&dy.stdout);
     assert!(stdout.contains("motion test PSNR") && stdout.contains("moving part(s) found"), "{stdout}");
-    for f in ["moving.ply", "static_pruned.ply", "deform.bin", "joints.json"] {
+    for f in ["moving.ply", "static_pruned.ply", "deform.bin", "checkpoint.bin", "twin/object.urdf"] {
         assert!(root.join("d").join(f).exists(), "missing {f}");
     }
-    let joints: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(root.join("d").join("joints.json")).expect("read")).expect("json");
-    assert!(joints.is_array());
+    let twin = root.join("d").join("twin");
+    let art: aim::export::Articulation =
+        serde_json::from_slice(&std::fs::read(twin.join("articulation.json")).expect("read")).expect("json");
+    assert_eq!(art.parts[0].name, "base");
+    assert_eq!(art.joints.len() + 1, art.parts.len(), "one joint per moving part");
+    for p in &art.parts {
+        let g = aim::splat::ply::read_ply(&twin.join(&p.gaussians)).expect("part reloads");
+        assert_eq!(g.len(), p.count);
+    }
+    // The URDF parses as XML with one joint per moving part (Python's own parser).
+    let check = Command::new("python3")
+        .arg("-c")
+        .arg("import sys, xml.etree.ElementTree as E; r = E.parse(sys.argv[1]).getroot(); print(len(r.findall('link')), len(r.findall('joint')))")
+        .arg(twin.join("object.urdf"))
+        .output()
+        .expect("python3 runs");
+    assert!(check.status.success(), "{}", String::from_utf8_lossy(&check.stderr));
+    assert_eq!(String::from_utf8_lossy(&check.stdout).trim(), format!("{} {}", art.parts.len(), art.joints.len()));
     aim::splat::ply::read_ply(&root.join("d").join("moving.ply")).expect("moving set reloads");
 
     // A missing static file is named.

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context};
 
 use aim::eval::{match_joints, ArticulationReport, GtJoint, PredictedJoint};
+use aim::export::{write_twin, TwinPart};
 use aim::motion::JointKind;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -23,7 +24,8 @@ pub struct Args {
     /// The start-state Gaussians from stage I (RUN/static.ply).
     #[arg(long = "static")]
     pub static_ply: PathBuf,
-    /// Output folder (moving.ply, static_pruned.ply, deform.bin, joints.json).
+    /// Output folder (moving.ply, static_pruned.ply, deform.bin, checkpoint.bin, and
+    /// twin/: articulation.json, object.urdf, parts/part_K.ply).
     #[arg(long)]
     pub out: PathBuf,
     #[arg(long, default_value = "cpu")]
@@ -142,8 +144,21 @@ pub fn train_and_analyse(
     let net = postcard::to_stdvec(&trainer.net).context("encoding the deformation network")?;
     aim::error::write_atomic(&out.join("deform.bin"), &net)?;
     let (parts, _) = trainer.analyse();
-    let joints: Vec<_> = parts.iter().map(|p| (p.members.len(), p.joint)).collect();
-    aim::error::write_atomic(&out.join("joints.json"), &serde_json::to_vec_pretty(&joints)?)?;
+    // The twin: the pruned static set as the base, each part's moving Gaussians at t = 0.
+    let start_pose = trainer.moving_at(0.0);
+    let part_sets: Vec<_> = parts
+        .iter()
+        .map(|p| {
+            let mut keep = vec![false; start_pose.len()];
+            p.members.iter().for_each(|&i| keep[i] = true);
+            start_pose.subset(&keep)
+        })
+        .collect();
+    let twin: Vec<TwinPart> = std::iter::once(TwinPart { gaussians: &trainer.static_set.gaussians, joint: None })
+        .chain(parts.iter().zip(&part_sets).map(|(p, g)| TwinPart { gaussians: g, joint: Some(p.joint) }))
+        .collect();
+    write_twin(&out.join("twin"), &twin)?;
+    println!("    wrote the twin to {} (articulation.json, object.urdf, parts/)", out.join("twin").display());
     let report = load_gt(dataset)?.map(|gt| {
         let pred: Vec<PredictedJoint> = parts
             .iter()

@@ -1,0 +1,164 @@
+//! The articulated twin as files for viewers and simulators, written into one
+//! folder:
+//!
+//! - `articulation.json`: the parts (each a 3DGS PLY in its start-state pose)
+//!   and the joints in the same form as the benchmark's `gt/joints.json`
+//!   (type, unit axis, a point on the axis, range with `range[0]` the state at
+//!   the start of the motion), so the two compare directly;
+//! - `parts/part_K.ply`: part 0 is the static base, parts 1.. move;
+//! - `object.urdf`: the kinematic tree (one link per part, a revolute or
+//!   prismatic joint per moving part with its limits). The links carry no visual
+//!   geometry yet: a Gaussian set is not a mesh (docs/architecture.md).
+//!
+//! Every file is written atomically.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{write_atomic, Error, Result};
+use crate::motion::{JointEstimate, JointKind};
+use crate::splat::GaussianSet;
+use crate::synth::{JointRecord, JointType};
+
+/// One part of the twin.
+pub struct TwinPart<'a> {
+    /// The part's Gaussians in the start-state pose.
+    pub gaussians: &'a GaussianSet,
+    /// How it moves relative to the base; None for the base itself.
+    pub joint: Option<JointEstimate>,
+}
+
+/// A part as listed in articulation.json.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PartEntry {
+    pub id: usize,
+    pub name: String,
+    /// The part's Gaussians, relative to the file.
+    pub gaussians: String,
+    pub count: usize,
+}
+
+/// articulation.json.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Articulation {
+    pub format: String,
+    pub parts: Vec<PartEntry>,
+    pub joints: Vec<JointRecord>,
+}
+
+const FORMAT: &str = "aim-articulation/1";
+
+/// The joint record of moving part `part` (child of the base, part 0).
+fn joint_record(part: usize, j: &JointEstimate) -> JointRecord {
+    JointRecord {
+        part,
+        kind: match j.kind {
+            JointKind::Revolute => JointType::Revolute,
+            JointKind::Prismatic => JointType::Prismatic,
+        },
+        axis: j.axis.as_vec3().to_array(),
+        origin: j.origin.as_vec3().to_array(),
+        range: [0.0, j.amount as f32],
+        parent: 0,
+    }
+}
+
+fn part_name(id: usize) -> String {
+    if id == 0 {
+        "base".into()
+    } else {
+        format!("part_{id}")
+    }
+}
+
+/// Write the twin into `dir`: `parts[0]` is the base, the others move.
+pub fn write_twin(dir: &Path, parts: &[TwinPart]) -> Result<Articulation> {
+    if parts.first().is_none_or(|p| p.joint.is_some()) {
+        return Err(Error::Other("a twin needs its base (a part without a joint) first".into()));
+    }
+    let parts_dir = dir.join("parts");
+    std::fs::create_dir_all(&parts_dir).map_err(|e| Error::io(&parts_dir, e))?;
+    let mut entries = Vec::new();
+    let mut joints = Vec::new();
+    for (id, p) in parts.iter().enumerate() {
+        let file = format!("parts/part_{id}.ply");
+        crate::splat::ply::write_ply(&dir.join(&file), p.gaussians)?;
+        entries.push(PartEntry { id, name: part_name(id), gaussians: file, count: p.gaussians.len() });
+        if let Some(j) = &p.joint {
+            joints.push(joint_record(id, j));
+        }
+    }
+    let art = Articulation { format: FORMAT.into(), parts: entries, joints };
+    let json = serde_json::to_vec_pretty(&art).map_err(|e| Error::Other(e.to_string()))?;
+    write_atomic(&dir.join("articulation.json"), &json)?;
+    write_atomic(&dir.join("object.urdf"), urdf(&art).as_bytes())?;
+    Ok(art)
+}
+
+/// The URDF of an articulation: joint frames sit on the joint axis (URDF puts the
+/// child link's frame at the joint origin), limits from the observed range.
+pub fn urdf(art: &Articulation) -> String {
+    let mut s = String::from("<?xml version=\"1.0\"?>\n<robot name=\"aim_twin\">\n");
+    for p in &art.parts {
+        let _ = writeln!(s, "  <link name=\"{}\"/>", p.name);
+    }
+    for j in &art.joints {
+        let (kind, lo, hi) = match j.kind {
+            JointType::Revolute => ("revolute", j.range[0], j.range[1]),
+            JointType::Prismatic => ("prismatic", j.range[0], j.range[1]),
+        };
+        let v = |a: [f32; 3]| format!("{} {} {}", a[0], a[1], a[2]);
+        let _ = write!(
+            s,
+            "  <joint name=\"joint_{part}\" type=\"{kind}\">\n    <parent link=\"{parent}\"/>\n    <child link=\"{child}\"/>\n    \
+             <origin xyz=\"{origin}\" rpy=\"0 0 0\"/>\n    <axis xyz=\"{axis}\"/>\n    \
+             <limit lower=\"{lo}\" upper=\"{hi}\" effort=\"10\" velocity=\"1\"/>\n  </joint>\n",
+            part = j.part,
+            parent = part_name(j.parent),
+            child = part_name(j.part),
+            origin = v(j.origin),
+            axis = v(j.axis),
+        );
+    }
+    s.push_str("</robot>\n");
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    #[test]
+    fn twin_files_round_trip() {
+        let dir = std::env::temp_dir().join(format!("aim-export-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let pts = crate::train::init::random_points(20, glam::Vec3::splat(-0.5), glam::Vec3::splat(0.5), 1);
+        let base = crate::train::init::gaussians_from_points(&pts[..12], None, 0.5, 0);
+        let door = crate::train::init::gaussians_from_points(&pts[12..], None, 0.5, 0);
+        let joint = JointEstimate {
+            kind: JointKind::Revolute,
+            axis: DVec3::Z,
+            origin: DVec3::new(0.3, -0.3, 0.0),
+            amount: 1.5,
+            translation_along_axis: 0.0,
+        };
+        let art = write_twin(
+            &dir,
+            &[TwinPart { gaussians: &base, joint: None }, TwinPart { gaussians: &door, joint: Some(joint) }],
+        )
+        .expect("written");
+        let back: Articulation =
+            serde_json::from_slice(&std::fs::read(dir.join("articulation.json")).expect("read")).expect("json");
+        assert_eq!(back, art);
+        assert_eq!(back.joints[0].range, [0.0, 1.5]);
+        assert_eq!(crate::splat::ply::read_ply(&dir.join("parts/part_1.ply")).expect("ply").len(), door.len());
+        let urdf = std::fs::read_to_string(dir.join("object.urdf")).expect("urdf");
+        assert!(urdf.contains("type=\"revolute\"") && urdf.contains("<origin xyz=\"0.3 -0.3 0\""), "{urdf}");
+        // The base must come first.
+        assert!(write_twin(&dir, &[TwinPart { gaussians: &door, joint: Some(joint) }]).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
