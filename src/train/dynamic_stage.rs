@@ -591,14 +591,17 @@ impl DualTrainer {
     fn add_rigidity_gradient(&self, it: u32, g_net: &mut [f32]) {
         let r = &self.config.rigidity;
         let nm = self.moving.gaussians.len();
-        if r.weight <= 0.0 || r.interval == 0 || !it.is_multiple_of(r.interval) || nm < 2 {
+        if r.weight <= 0.0 || r.interval == 0 || it < r.from_iteration || !it.is_multiple_of(r.interval) || nm < 2 {
             return;
         }
         let mut rng = rng_for(self.config.seed, STREAM_RIGIDITY, u64::from(it));
         let picks = rand::seq::index::sample(&mut rng, nm, r.samples.min(nm));
         let means: Vec<f32> =
             picks.iter().flat_map(|i| self.moving.gaussians.means[3 * i..3 * i + 3].iter().copied()).collect();
-        let (t_a, t_b) = (rng.random::<f32>(), rng.random::<f32>());
+        // With the field anchored at t = 0, distances are kept from the start state,
+        // where neighbours are known to be neighbours; otherwise between two random times.
+        let t_a = if self.config.deform.zero_at_start { 0.0 } else { rng.random::<f32>() };
+        let t_b = rng.random::<f32>();
         let (_, g) = rigidity_loss(&self.net, &means, network_time(t_a), network_time(t_b), r.neighbours, r.scale);
         let w = r.weight * r.interval as f32;
         g_net.iter_mut().zip(g).for_each(|(acc, v)| *acc += w * v);

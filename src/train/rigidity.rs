@@ -27,11 +27,14 @@ pub struct RigidityConfig {
     pub neighbours: usize,
     /// Distance change (world units) at which the robust penalty is half its maximum.
     pub scale: f32,
+    /// First iteration it applies at (e.g. once the time window has opened).
+    #[serde(default)]
+    pub from_iteration: u32,
 }
 
 impl Default for RigidityConfig {
     fn default() -> Self {
-        Self { weight: 0.0, interval: 1, samples: 2000, neighbours: 8, scale: 0.01 }
+        Self { weight: 0.0, interval: 1, samples: 2000, neighbours: 8, scale: 0.01, from_iteration: 0 }
     }
 }
 
