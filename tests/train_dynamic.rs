@@ -46,9 +46,22 @@ fn train_dynamic_runs_from_a_stage_one_result_and_writes_its_outputs() {
         .arg("--out")
         .arg(root.join("d"))
         .args(["--iterations", "30"])
+        .arg("--rrd")
+        .arg(root.join("d.rrd"))
         .output()
         .expect("runs");
     assert!(dy.status.success(), "{}", String::from_utf8_lossy(&dy.stderr));
+    // The rerun log holds stage II's scalars and sets (rerun's own CLI reads it).
+    let print = Command::new("python3")
+        .args(["-m", "rerun", "rrd", "print", "--verbose"])
+        .arg(root.join("d.rrd"))
+        .output()
+        .expect("rerun CLI runs");
+    assert!(print.status.success(), "{}", String::from_utf8_lossy(&print.stderr));
+    let listing = String::from_utf8_lossy(&print.stdout);
+    for entity in ["/stage2/psnr", "/stage2/static", "/stage2/moving/t1"] {
+        assert!(listing.contains(entity), "{entity} missing from the recording");
+    }
     let stdout = String::from_utf8_lossy(&dy.stdout);
     assert!(stdout.contains("motion test PSNR") && stdout.contains("moving part(s) found"), "{stdout}");
     for f in ["moving.ply", "static_pruned.ply", "deform.bin", "checkpoint.bin", "twin/object.urdf"] {

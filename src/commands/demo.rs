@@ -86,7 +86,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dyn_cfg.iterations
     );
     let static_ply = args.out.join("static").join("static.ply");
-    let control = super::train_dynamic::RunControl { resume: false, interrupt: &never };
+    let control = super::train_dynamic::RunControl { resume: false, interrupt: &never, viz: &viz };
     let Some((parts, report)) =
         super::train_dynamic::train_and_analyse(&data, &static_ply, &args.out.join("dynamic"), dyn_cfg, &control)?
     else {

@@ -40,6 +40,8 @@ pub struct Args {
     /// Continue from OUT/checkpoint.bin (written every `checkpoint_interval` iterations and on Ctrl-C).
     #[arg(long)]
     pub resume: bool,
+    #[command(flatten)]
+    pub rerun: super::train_static::RerunArgs,
 }
 
 /// Ground-truth joints of a synthetic dataset, if it has them.
@@ -72,6 +74,20 @@ pub struct RunControl<'a> {
     pub resume: bool,
     /// Raised (Ctrl-C) to checkpoint and stop.
     pub interrupt: &'a AtomicBool,
+    /// Rerun log: scalars every 10 iterations; the static set and the moving set
+    /// at t = 0, 0.5, 1 at every checkpoint; the parts at the end.
+    pub viz: &'a aim::viz::Viz,
+}
+
+/// Log the two sets to rerun (the moving one at three times of the motion).
+fn log_sets(viz: &aim::viz::Viz, trainer: &DualTrainer) {
+    if !viz.is_enabled() {
+        return;
+    }
+    viz.gaussians("stage2/static", &trainer.static_set.gaussians);
+    for (name, t) in [("t0", 0.0), ("t05", 0.5), ("t1", 1.0)] {
+        viz.gaussians(&format!("stage2/moving/{name}"), &trainer.moving_at(t));
+    }
 }
 
 /// Train stages II and III into `out`, checkpointing as configured; returns the
@@ -119,8 +135,17 @@ pub fn train_and_analyse(
             return Ok(None);
         }
         let s = trainer.step(&views);
+        if s.iteration.is_multiple_of(10) || s.sdmd_moved > 0 {
+            control.viz.set_iteration(s.iteration);
+            control.viz.scalar("stage2/loss", f64::from(s.loss));
+            control.viz.scalar("stage2/psnr", f64::from(s.psnr));
+            control.viz.scalar("stage2/static_gaussians", s.static_count as f64);
+            control.viz.scalar("stage2/moving_gaussians", s.moving_count as f64);
+            control.viz.scalar("stage2/sdmd_moved", s.sdmd_moved as f64);
+        }
         if interval > 0 && s.iteration.is_multiple_of(interval) {
             save_checkpoint(&checkpoint, &trainer, 0.0)?;
+            log_sets(control.viz, &trainer);
         }
         if let Some(bad) = trainer.moving.gaussians.first_non_finite() {
             bail!("stage II diverged at iteration {}: non-finite {bad:?}", s.iteration);
@@ -158,6 +183,11 @@ pub fn train_and_analyse(
         .chain(parts.iter().zip(&part_sets).map(|(p, g)| TwinPart { gaussians: g, joint: Some(p.joint) }))
         .collect();
     write_twin(&out.join("twin"), &twin)?;
+    log_sets(control.viz, &trainer);
+    for (k, g) in part_sets.iter().enumerate() {
+        control.viz.gaussians(&format!("stage3/part_{}", k + 1), g);
+    }
+    control.viz.flush();
     println!("    wrote the twin to {} (articulation.json, object.urdf, parts/)", out.join("twin").display());
     let report = load_gt(dataset)?.map(|gt| {
         let pred: Vec<PredictedJoint> = parts
@@ -227,7 +257,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         // A second Ctrl-C is not caught again: the handler only raises the flag.
         let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
     }
-    let control = RunControl { resume: args.resume, interrupt: &interrupt };
+    let viz = args.rerun.open()?;
+    let control = RunControl { resume: args.resume, interrupt: &interrupt, viz: &viz };
     if let Some((parts, report)) = train_and_analyse(&args.dataset, &args.static_ply, &args.out, cfg, &control)? {
         print_joints(&parts, report.as_ref());
     }
