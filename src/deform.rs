@@ -265,14 +265,21 @@ impl DeformNet {
 
     /// Gradient of the loss with respect to every parameter, from dL/d(d_xyz)
     /// and dL/d(d_rot) of the forward pass that produced `cache`.
-    pub fn backward(&self, cache: &DeformCache, grad_xyz: &[f32], grad_rot: &[f32]) -> Vec<f32> {
+    pub fn backward<'a>(&self, cache: &DeformCache, grad_xyz: &'a [f32], grad_rot: &'a [f32]) -> Vec<f32> {
         let n = cache.n;
         let (w, d_in) = (self.config.width, self.config.input_dims());
         assert_eq!(grad_xyz.len(), 3 * n);
         assert_eq!(grad_rot.len(), 4 * n);
         let mut grads = vec![0.0f32; self.params.len()];
         let last = cache.hidden.last().expect("depth >= 1");
-        let scaled = |g: &[f32]| g.iter().map(|v| v * cache.output_scale).collect::<Vec<f32>>();
+        // Through the output scale (a copy only when there is one).
+        let scaled = |g: &'a [f32]| -> std::borrow::Cow<'a, [f32]> {
+            if cache.output_scale == 1.0 {
+                g.into()
+            } else {
+                g.iter().map(|v| v * cache.output_scale).collect::<Vec<f32>>().into()
+            }
+        };
         let (grad_xyz, grad_rot) = (scaled(grad_xyz), scaled(grad_rot));
         // Heads: dW = h^T g, db = sum g, dh = g W^T.
         let mut dh = vec![0.0f32; n * w];

@@ -12,6 +12,7 @@ use aim::motion::JointKind;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
+use aim::train::config::StageConfig;
 use aim::train::dynamic_stage::{
     load_checkpoint, save_checkpoint, DualTrainer, DynamicConfig, PartEstimate, StageTwoViews,
 };
@@ -237,20 +238,7 @@ pub fn print_joints(parts: &[PartEstimate], report: Option<&ArticulationReport>)
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut cfg = match &args.config {
-        Some(p) => {
-            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            DynamicConfig::from_toml(&text, p)?
-        }
-        None => DynamicConfig::preset(&args.preset)?,
-    };
-    if let Some(n) = args.iterations {
-        cfg.iterations = n;
-    }
-    if let Some(s) = args.seed {
-        cfg.seed = s;
-    }
-    cfg.validate().map_err(|e| anyhow::anyhow!("invalid configuration: {e}"))?;
+    let cfg = DynamicConfig::resolve(args.config.as_deref(), &args.preset, args.seed, args.iterations)?;
     let interrupt = Arc::new(AtomicBool::new(false));
     {
         let flag = interrupt.clone();

@@ -4,10 +4,10 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use anyhow::{bail, Context};
+use anyhow::bail;
 
 use aim::splat::ply::PointCloud;
-use aim::train::config::StaticConfig;
+use aim::train::config::{StageConfig, StaticConfig};
 use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
 use aim::train::views::views_from_frames;
 use aim_capture::dataset::{load_aim_transforms, LoadOptions};
@@ -65,24 +65,6 @@ impl RerunArgs {
     }
 }
 
-pub fn resolve_config(args: &Args) -> anyhow::Result<StaticConfig> {
-    let mut cfg = match &args.config {
-        Some(p) => {
-            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            StaticConfig::from_toml(&text, p)?
-        }
-        None => StaticConfig::preset(&args.preset)?,
-    };
-    if let Some(s) = args.seed {
-        cfg.seed = s;
-    }
-    if let Some(n) = args.iterations {
-        cfg.iterations = n;
-    }
-    cfg.validate().map_err(|e| anyhow::anyhow!("invalid configuration: {e}"))?;
-    Ok(cfg)
-}
-
 /// Load the train and test views of one phase folder of an AiM-layout dataset
 /// (`start` for Phase::Scan, `motion` for Phase::Motion), checking the training
 /// images agree in size.
@@ -135,7 +117,7 @@ pub fn load_init_points(path: &Path) -> anyhow::Result<PointCloud> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let cfg = resolve_config(&args)?;
+    let cfg = StaticConfig::resolve(args.config.as_deref(), &args.preset, args.seed, args.iterations)?;
     let (train, test) = load_phase_views(&args.dataset, Phase::Scan, cfg.resolution)?;
     tracing::info!(
         train = train.len(),

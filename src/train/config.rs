@@ -183,22 +183,18 @@ impl StaticConfig {
         c.init.points = 10_000;
         c
     }
+}
 
-    pub fn preset(name: &str) -> Result<Self> {
-        match name {
-            "paper" => Ok(Self::paper()),
-            "cpu" => Ok(Self::cpu()),
-            other => Err(Error::Config(format!("unknown preset '{other}' (valid: paper, cpu)"))),
-        }
+impl StageConfig for StaticConfig {
+    fn presets() -> [Preset<Self>; 2] {
+        [("paper", Self::paper), ("cpu", Self::cpu)]
     }
 
-    /// Parse TOML over a preset (see [`config_from_toml`]).
-    pub fn from_toml(text: &str, path: &std::path::Path) -> Result<Self> {
-        config_from_toml(text, path, Self::preset, Self::validate)
+    fn run_settings(&mut self) -> (&mut u64, &mut u32) {
+        (&mut self.seed, &mut self.iterations)
     }
 
-    /// Range checks, naming the key.
-    pub fn validate(&self) -> std::result::Result<(), String> {
+    fn validate(&self) -> std::result::Result<(), String> {
         let positive = [
             ("lr.means_init", self.lr.means_init),
             ("lr.sh_dc", self.lr.sh_dc),
@@ -251,22 +247,63 @@ impl StaticConfig {
     }
 }
 
-/// Parse a stage configuration from TOML over a preset: the file names its
-/// `preset` (default cpu) and overrides any key; unknown keys are rejected with
-/// their name, and `validate` names the key of any value out of range.
-pub fn config_from_toml<T: Serialize + serde::de::DeserializeOwned>(
-    text: &str,
-    path: &std::path::Path,
-    preset: impl Fn(&str) -> Result<T>,
-    validate: impl Fn(&T) -> std::result::Result<(), String>,
-) -> Result<T> {
-    let value: toml::Value = toml::from_str(text).map_err(|e| Error::bad_file(path, e.to_string()))?;
-    let name = value.get("preset").and_then(|v| v.as_str()).unwrap_or("cpu");
-    let mut base = toml::Value::try_from(preset(name)?).map_err(|e| Error::Other(e.to_string()))?;
-    merge(&mut base, value);
-    let cfg: T = base.try_into().map_err(|e: toml::de::Error| Error::bad_file(path, e.to_string()))?;
-    validate(&cfg).map_err(|e| Error::bad_file(path, e))?;
-    Ok(cfg)
+/// A named preset and its constructor.
+pub type Preset<T> = (&'static str, fn() -> T);
+
+/// What the stage configurations share: named presets (paper, cpu), TOML over a
+/// preset, range checks, and the run settings a command line may override.
+pub trait StageConfig: Serialize + serde::de::DeserializeOwned {
+    /// The named presets.
+    fn presets() -> [Preset<Self>; 2];
+
+    /// The seed and the iteration count.
+    fn run_settings(&mut self) -> (&mut u64, &mut u32);
+
+    /// Range checks, naming the key.
+    fn validate(&self) -> std::result::Result<(), String>;
+
+    fn preset(name: &str) -> Result<Self> {
+        let presets = Self::presets();
+        match presets.iter().find(|(n, _)| *n == name) {
+            Some((_, make)) => Ok(make()),
+            None => {
+                let valid: Vec<&str> = presets.iter().map(|(n, _)| *n).collect();
+                Err(Error::Config(format!("unknown preset '{name}' (valid: {})", valid.join(", "))))
+            }
+        }
+    }
+
+    /// Parse TOML over a preset: the file names its `preset` (default cpu) and
+    /// overrides any key; unknown keys are rejected with their name, and values
+    /// out of range with their key.
+    fn from_toml(text: &str, path: &std::path::Path) -> Result<Self> {
+        let value: toml::Value = toml::from_str(text).map_err(|e| Error::bad_file(path, e.to_string()))?;
+        let name = value.get("preset").and_then(|v| v.as_str()).unwrap_or("cpu");
+        let mut base = toml::Value::try_from(Self::preset(name)?).map_err(|e| Error::Other(e.to_string()))?;
+        merge(&mut base, value);
+        let cfg: Self = base.try_into().map_err(|e: toml::de::Error| Error::bad_file(path, e.to_string()))?;
+        cfg.validate().map_err(|e| Error::bad_file(path, e))?;
+        Ok(cfg)
+    }
+
+    /// A command line's configuration: `file` (TOML over a preset) or else the
+    /// preset named, then the seed and iteration overrides, checked again.
+    fn resolve(
+        file: Option<&std::path::Path>,
+        preset: &str,
+        seed: Option<u64>,
+        iterations: Option<u32>,
+    ) -> Result<Self> {
+        let mut cfg = match file {
+            Some(p) => Self::from_toml(&std::fs::read_to_string(p).map_err(|e| Error::io(p, e))?, p)?,
+            None => Self::preset(preset)?,
+        };
+        let (s, n) = cfg.run_settings();
+        *s = seed.unwrap_or(*s);
+        *n = iterations.unwrap_or(*n);
+        cfg.validate().map_err(Error::Config)?;
+        Ok(cfg)
+    }
 }
 
 /// Overlay `over` onto `base` table by table (keys absent from `base` stay, so

@@ -15,7 +15,7 @@ use crate::error::{Error, Result};
 use crate::motion::{extract_joint, segment_rigid_parts, JointEstimate, RansacConfig, Rigid, Trajectories};
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::{sigmoid, GaussianSet};
-use crate::train::config::{DensityConfig, LrConfig};
+use crate::train::config::{DensityConfig, LrConfig, Preset, StageConfig};
 use crate::train::density::{densify_and_prune, remove, reset_opacity, DensityStats};
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr};
@@ -156,22 +156,18 @@ impl DynamicConfig {
         c.lr.means_init = 4e-4;
         c
     }
+}
 
-    pub fn preset(name: &str) -> Result<Self> {
-        match name {
-            "paper" => Ok(Self::paper()),
-            "cpu" => Ok(Self::cpu()),
-            other => Err(Error::Config(format!("unknown preset '{other}' (valid: paper, cpu)"))),
-        }
+impl StageConfig for DynamicConfig {
+    fn presets() -> [Preset<Self>; 2] {
+        [("paper", Self::paper), ("cpu", Self::cpu)]
     }
 
-    /// Parse TOML over a preset (see [`crate::train::config::config_from_toml`]).
-    pub fn from_toml(text: &str, path: &std::path::Path) -> Result<Self> {
-        crate::train::config::config_from_toml(text, path, Self::preset, Self::validate)
+    fn run_settings(&mut self) -> (&mut u64, &mut u32) {
+        (&mut self.seed, &mut self.iterations)
     }
 
-    /// Range checks, naming the key.
-    pub fn validate(&self) -> std::result::Result<(), String> {
+    fn validate(&self) -> std::result::Result<(), String> {
         if self.iterations == 0 {
             return Err("iterations must be at least 1".into());
         }
@@ -512,14 +508,16 @@ impl DualTrainer {
         // The deformed mean is mean + d(sg(mean)): the canonical mean and the offset
         // receive the same gradient (likewise the rotation).
         if let Some(d) = &deform {
-            let (mut g_dxyz, mut g_drot) = (g_moving.means.clone(), g_moving.rotations.clone());
             let regularise = it <= self.config.static_opacity_only_iterations + self.config.sdmd_interval.max(1);
-            if regularise && self.config.deform_magnitude_weight > 0.0 {
+            let mut g_net = if regularise && self.config.deform_magnitude_weight > 0.0 {
+                let (mut g_dxyz, mut g_drot) = (g_moving.means.clone(), g_moving.rotations.clone());
                 let w = self.config.deform_magnitude_weight / nm.max(1) as f32;
                 add_norm_gradient(&mut g_dxyz, &d.d_xyz, 3, w);
                 add_norm_gradient(&mut g_drot, &d.d_rot, 4, w);
-            }
-            let mut g_net = self.net.backward(&d.cache, &g_dxyz, &g_drot);
+                self.net.backward(&d.cache, &g_dxyz, &g_drot)
+            } else {
+                self.net.backward(&d.cache, &g_moving.means, &g_moving.rotations)
+            };
             self.add_rigidity_gradient(it, &mut g_net);
             let lr = ExponLr {
                 lr_init: self.config.deform_lr_init,

@@ -18,7 +18,7 @@ use crate::error::{write_atomic, Error, Result};
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::ply::PointCloud;
 use crate::splat::GaussianSet;
-use crate::train::config::StaticConfig;
+use crate::train::config::{StageConfig, StaticConfig};
 use crate::train::density::{densify_and_prune, reset_opacity, DensifyReport, DensityStats};
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr, ssim};
