@@ -1,7 +1,10 @@
 //! Training progress: an indicatif bar on a terminal, and `tracing` lines
-//! every 5% of the run otherwise (logs, CI, `nohup`), where a bar is invisible.
+//! every 5% of the run otherwise (logs, CI, `nohup`), where a bar is invisible;
+//! and the Ctrl-C flag long runs checkpoint on.
 
 use std::io::IsTerminal;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -38,4 +41,13 @@ impl Progress {
     pub fn finish(&self) {
         self.bar.finish_and_clear();
     }
+}
+
+/// A flag that Ctrl-C raises. A second Ctrl-C is not caught again: the handler
+/// only raises the flag, and the run checkpoints and stops when it sees it.
+pub fn interrupt_on_ctrl_c() -> Arc<AtomicBool> {
+    let interrupt = Arc::new(AtomicBool::new(false));
+    let flag = interrupt.clone();
+    let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    interrupt
 }

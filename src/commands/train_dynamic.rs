@@ -10,7 +10,6 @@ use aim::eval::{match_joints, ArticulationReport, GtJoint, PredictedJoint};
 use aim::export::{write_twin, TwinPart};
 use aim::motion::JointKind;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
 
 use aim::train::config::StageConfig;
 use aim::train::dynamic_stage::{
@@ -144,7 +143,8 @@ pub fn train_and_analyse(
             control.viz.scalar("stage2/moving_gaussians", s.moving_count as f64);
             control.viz.scalar("stage2/sdmd_moved", s.sdmd_moved as f64);
         }
-        if interval > 0 && s.iteration.is_multiple_of(interval) {
+        // The last iteration's checkpoint and sets are written after the loop.
+        if interval > 0 && s.iteration.is_multiple_of(interval) && s.iteration < iterations {
             save_checkpoint(&checkpoint, &trainer, 0.0)?;
             log_sets(control.viz, &trainer);
         }
@@ -239,12 +239,7 @@ pub fn print_joints(parts: &[PartEstimate], report: Option<&ArticulationReport>)
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = DynamicConfig::resolve(args.config.as_deref(), &args.preset, args.seed, args.iterations)?;
-    let interrupt = Arc::new(AtomicBool::new(false));
-    {
-        let flag = interrupt.clone();
-        // A second Ctrl-C is not caught again: the handler only raises the flag.
-        let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
-    }
+    let interrupt = super::progress::interrupt_on_ctrl_c();
     let viz = args.rerun.open()?;
     let control = RunControl { resume: args.resume, interrupt: &interrupt, viz: &viz };
     if let Some((parts, report)) = train_and_analyse(&args.dataset, &args.static_ply, &args.out, cfg, &control)? {

@@ -1,8 +1,6 @@
 //! `aim train-static DATASET --out RUN [--preset cpu|paper] [--config FILE] [--resume]`
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
 
 use anyhow::bail;
 
@@ -127,12 +125,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         preset = %cfg.preset,
         "stage I"
     );
-    let interrupt = Arc::new(AtomicBool::new(false));
-    {
-        let flag = interrupt.clone();
-        // A second Ctrl-C is not caught again: the handler only raises the flag.
-        let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
-    }
+    let interrupt = super::progress::interrupt_on_ctrl_c();
     let bar = super::progress::Progress::new("stage I", cfg.iterations);
     let mut ema_psnr = 0.0f32;
     let viz = args.rerun.open()?;
