@@ -6,9 +6,12 @@
 //!   (type, unit axis, a point on the axis, range with `range[0]` the state at
 //!   the start of the motion), so the two compare directly;
 //! - `parts/part_K.ply`: part 0 is the static base, parts 1.. move;
+//! - `meshes/part_K.obj` and `.ply`: each part's surface at the start state,
+//!   extracted from its Gaussians by TSDF fusion ([`crate::mesh::tsdf`]), all
+//!   parts with one voxel size (a fraction of the whole twin's size);
 //! - `object.urdf`: the kinematic tree (one link per part, a revolute or
 //!   prismatic joint per moving part with its limits). The links carry no visual
-//!   geometry yet: a Gaussian set is not a mesh (docs/architecture.md).
+//!   geometry yet (the meshes are there for it).
 //!
 //! Every file is written atomically.
 
@@ -18,6 +21,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{write_atomic, Error, Result};
+use crate::mesh::tsdf::{mesh_gaussians, object_size, TsdfConfig};
+use crate::mesh::MeshData;
 use crate::motion::{JointEstimate, JointKind};
 use crate::splat::GaussianSet;
 use crate::synth::{JointRecord, JointType};
@@ -38,6 +43,10 @@ pub struct PartEntry {
     /// The part's Gaussians, relative to the file.
     pub gaussians: String,
     pub count: usize,
+    /// The part's surface mesh (OBJ, a PLY beside it), relative to the file; None
+    /// when no surface could be extracted (too few opaque Gaussians).
+    #[serde(default)]
+    pub mesh: Option<String>,
 }
 
 /// articulation.json.
@@ -73,19 +82,38 @@ fn part_name(id: usize) -> String {
     }
 }
 
-/// Write the twin into `dir`: `parts[0]` is the base, the others move.
-pub fn write_twin(dir: &Path, parts: &[TwinPart]) -> Result<Articulation> {
+/// Write the twin into `dir`: `parts[0]` is the base, the others move. Meshes
+/// are extracted with `mesh` (a part that gives none is logged and recorded as
+/// `mesh: None`).
+pub fn write_twin(dir: &Path, parts: &[TwinPart], mesh: &TsdfConfig) -> Result<Articulation> {
     if parts.first().is_none_or(|p| p.joint.is_some()) {
         return Err(Error::Other("a twin needs its base (a part without a joint) first".into()));
     }
-    let parts_dir = dir.join("parts");
-    std::fs::create_dir_all(&parts_dir).map_err(|e| Error::io(&parts_dir, e))?;
+    for sub in ["parts", "meshes"] {
+        std::fs::create_dir_all(dir.join(sub)).map_err(|e| Error::io(dir.join(sub), e))?;
+    }
+    let size = object_size(parts.iter().map(|p| p.gaussians), mesh.min_opacity);
     let mut entries = Vec::new();
     let mut joints = Vec::new();
     for (id, p) in parts.iter().enumerate() {
         let file = format!("parts/part_{id}.ply");
         crate::splat::ply::write_ply(&dir.join(&file), p.gaussians)?;
-        entries.push(PartEntry { id, name: part_name(id), gaussians: file, count: p.gaussians.len() });
+        let surface = size
+            .ok_or_else(|| Error::Other("no opaque Gaussians".into()))
+            .and_then(|s| mesh_gaussians(p.gaussians, s, mesh));
+        let mesh_file = match surface {
+            Ok(m) => {
+                let stem = format!("meshes/part_{id}");
+                let comment = format!("aim twin: part {id} ({}) at the start state", part_name(id));
+                m.write_obj_and_ply(&dir.join(&stem), &comment)?;
+                Some(format!("{stem}.obj"))
+            }
+            Err(e) => {
+                tracing::warn!("twin part {id}: no mesh ({e})");
+                None
+            }
+        };
+        entries.push(PartEntry { id, name: part_name(id), gaussians: file, count: p.gaussians.len(), mesh: mesh_file });
         if let Some(j) = &p.joint {
             joints.push(joint_record(id, j));
         }
@@ -94,6 +122,25 @@ pub fn write_twin(dir: &Path, parts: &[TwinPart]) -> Result<Articulation> {
     let json = serde_json::to_vec_pretty(&art).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&dir.join("articulation.json"), &json)?;
     write_atomic(&dir.join("object.urdf"), urdf(&art).as_bytes())?;
+    Ok(art)
+}
+
+/// A part's mesh moved from the start state (`range[0]`) to joint state `q`
+/// (radians or metres) by its joint.
+pub fn mesh_at_state(mesh: &MeshData, joint: &JointRecord, q: f32) -> MeshData {
+    let j = joint.to_joint();
+    mesh.transformed(&(j.transform_at_state(q) * j.transform_at_state(j.range[0]).inverse()))
+}
+
+/// Read a twin's articulation.json and check it.
+pub fn read_articulation(path: &Path) -> Result<Articulation> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let art: Articulation =
+        serde_json::from_slice(&bytes).map_err(|e| Error::bad_file(path, format!("not an articulation file: {e}")))?;
+    if art.parts.first().is_none_or(|p| art.joints.iter().any(|j| j.part == p.id)) {
+        return Err(Error::bad_file(path, "the first part must be the base (a part without a joint)"));
+    }
+    crate::synth::gt::validate_joints(path, &art.joints, &art.parts.iter().map(|p| p.id).collect::<Vec<_>>())?;
     Ok(art)
 }
 
@@ -148,6 +195,7 @@ mod tests {
         let art = write_twin(
             &dir,
             &[TwinPart { gaussians: &base, joint: None }, TwinPart { gaussians: &door, joint: Some(joint) }],
+            &TsdfConfig::default(),
         )
         .expect("written");
         let back: Articulation =
@@ -158,7 +206,8 @@ mod tests {
         let urdf = std::fs::read_to_string(dir.join("object.urdf")).expect("urdf");
         assert!(urdf.contains("type=\"revolute\"") && urdf.contains("<origin xyz=\"0.3 -0.3 0\""), "{urdf}");
         // The base must come first.
-        assert!(write_twin(&dir, &[TwinPart { gaussians: &door, joint: Some(joint) }]).is_err());
+        let only_door = [TwinPart { gaussians: &door, joint: Some(joint) }];
+        assert!(write_twin(&dir, &only_door, &TsdfConfig::default()).is_err());
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

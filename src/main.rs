@@ -37,6 +37,10 @@ enum Command {
     TrainStatic(commands::train_static::Args),
     /// Stages II and III: dual Gaussians on the motion video, then parts and joints.
     TrainDynamic(commands::train_dynamic::Args),
+    /// The paper's metrics (joints, Chamfer distance, 3D IoU) of a twin against ground truth.
+    Eval(commands::eval::Args),
+    /// A Gaussian set's surface mesh by TSDF fusion (OBJ + PLY), optionally compared with a reference.
+    Mesh(commands::mesh::Args),
 }
 
 /// Keep freed buffers in the process instead of handing them back to the OS.
@@ -62,7 +66,9 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let filter =
         tracing_subscriber::EnvFilter::try_new(&cli.log).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
+    // Colour only for a person at a terminal: logs in files and pipes stay plain text.
+    let colour = std::io::IsTerminal::is_terminal(&std::io::stderr()) && std::env::var_os("NO_COLOR").is_none();
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(colour).init();
     let result = match cli.command {
         Command::Render(args) => commands::render::run(args),
         Command::Bench(b) => commands::bench::run(b),
@@ -72,6 +78,8 @@ fn main() -> ExitCode {
         Command::TrainStatic(args) => commands::train_static::run(args),
         Command::TrainDynamic(args) => commands::train_dynamic::run(args),
         Command::Demo(args) => commands::demo::run(args),
+        Command::Eval(args) => commands::eval::run(args),
+        Command::Mesh(args) => commands::mesh::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -181,7 +181,7 @@ fn colmap_model(frames: &[Frame]) -> ColmapModel {
         img.points2d = vec![(1.5, 2.25, -1), (3.0, 4.0, 7)];
         m.images.push(img);
     }
-    let mesh = aim::synth::gt::read_obj(&dataset().join("gt/start/part_0.obj")).unwrap();
+    let mesh = aim::mesh::read_obj(&dataset().join("gt/start/part_0.obj")).unwrap();
     for (i, v) in mesh.vertices.iter().enumerate().step_by(3) {
         m.points.push(ColmapPoint {
             id: i as u64 + 1,

@@ -91,7 +91,7 @@ fn written_dataset_loads_with_the_aim_loader_and_matches_the_plan() {
     let (lo, hi) = (corner("min"), corner("max"));
     for state in ["start", "end"] {
         for k in 0..3 {
-            let m = aim::synth::gt::read_obj(&out.join(format!("gt/{state}/part_{k}.obj"))).unwrap();
+            let m = aim::mesh::read_obj(&out.join(format!("gt/{state}/part_{k}.obj"))).unwrap();
             assert!(m.vertices.iter().all(|v| v.cmpge(lo - 1e-4).all() && v.cmple(hi + 1e-4).all()));
         }
     }

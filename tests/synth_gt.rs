@@ -6,13 +6,13 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use aim::camera::Camera;
-use aim::synth::geometry::MeshData;
-use aim::synth::gt::{read_obj, JointsFile};
+use aim::mesh::read_obj;
+use aim::mesh::MeshData;
+use aim::synth::gt::JointsFile;
 use aim::synth::{object, write_dataset, SynthConfig, OBJECT_NAMES};
 use aim_capture::dataset::{load_aim, LoadOptions};
 use aim_capture::Frame;
 use glam::{Affine3A, Vec3};
-use rand::{Rng, SeedableRng};
 
 const RES: u32 = 160;
 
@@ -78,38 +78,6 @@ fn all_frames(dir: &Path) -> Vec<Frame> {
     [ds.start.train, ds.start.test, ds.motion.train, ds.motion.test, end.train, end.test].concat()
 }
 
-/// Points spread over a mesh by area (triangle-uniform), with a fixed seed.
-fn sample_surface(m: &MeshData, n: usize, seed: u64) -> Vec<Vec3> {
-    let areas: Vec<f32> = m
-        .triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| m.vertices[i as usize]);
-            0.5 * (b - a).cross(c - a).length()
-        })
-        .collect();
-    let total: f32 = areas.iter().sum();
-    let mut cdf = Vec::with_capacity(areas.len());
-    let mut acc = 0.0;
-    for a in &areas {
-        acc += a / total;
-        cdf.push(acc);
-    }
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    (0..n)
-        .map(|_| {
-            let r: f32 = rng.random();
-            let i = cdf.partition_point(|&c| c < r).min(m.triangles.len() - 1);
-            let [a, b, c] = m.triangles[i].map(|k| m.vertices[k as usize]);
-            let (mut u, mut v): (f32, f32) = (rng.random(), rng.random());
-            if u + v > 1.0 {
-                (u, v) = (1.0 - u, 1.0 - v);
-            }
-            a + u * (b - a) + v * (c - a)
-        })
-        .collect()
-}
-
 #[test]
 fn projected_gt_surface_points_hit_their_part_at_their_depth() {
     let root = datasets();
@@ -117,7 +85,7 @@ fn projected_gt_surface_points_hit_their_part_at_their_depth() {
         let dir = root.join(name);
         let gt = load_gt(&dir);
         let samples: Vec<Vec<Vec3>> =
-            gt.start.iter().enumerate().map(|(k, m)| sample_surface(m, 3000, 11 + k as u64)).collect();
+            gt.start.iter().enumerate().map(|(k, m)| m.sample_surface(3000, 11 + k as u64)).collect();
         let (mut in_image, mut visible, mut id_ok) = (0usize, 0usize, 0usize);
         let mut depth_err = Vec::new();
         for f in all_frames(&dir) {

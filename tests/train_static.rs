@@ -245,7 +245,7 @@ fn training_starts_from_a_given_point_cloud_in_ply_or_colmap_form() {
     let mesh_dir = data.join("gt").join("start");
     let mut pts = Vec::new();
     for entry in std::fs::read_dir(&mesh_dir).expect("gt meshes") {
-        let mesh = aim::synth::gt::read_obj(&entry.expect("entry").path()).expect("obj");
+        let mesh = aim::mesh::read_obj(&entry.expect("entry").path()).expect("obj");
         pts.extend(mesh.vertices);
     }
     assert!(pts.len() > 50);
@@ -320,4 +320,29 @@ fn training_starts_from_a_given_point_cloud_in_ply_or_colmap_form() {
         .output()
         .expect("runs");
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("nope.ply"));
+}
+
+/// Written to a pipe (a log file, CI), the CLI's output is plain text: no colour
+/// escapes from the log formatter, no progress-bar redraws, and progress still
+/// reported as log lines.
+#[test]
+fn output_to_a_pipe_is_plain_text_with_progress_lines() {
+    let root = tmp("plain");
+    let data = root.join("data");
+    small_dataset(&data);
+    let o = Command::new(env!("CARGO_BIN_EXE_aim"))
+        .args(["--log", "info", "train-static"])
+        .arg(&data)
+        .arg("--out")
+        .arg(root.join("run"))
+        .args(["--iterations", "40"])
+        .env_remove("NO_COLOR")
+        .output()
+        .expect("runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = [o.stdout, o.stderr].concat();
+    let text = String::from_utf8_lossy(&text);
+    assert!(!text.contains('\u{1b}'), "escape sequences in non-terminal output:\n{text}");
+    assert!(!text.contains('\r'), "carriage returns (bar redraws) in non-terminal output:\n{text}");
+    assert!(text.contains("stage I 40/40"), "no progress line in:\n{text}");
 }

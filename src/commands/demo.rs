@@ -46,7 +46,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let mut train_cfg = StaticConfig::cpu();
     train_cfg.seed = args.seed;
-    let (train, test) = super::train_static::load_phase_views(&data, aim_capture::Phase::Scan, train_cfg.resolution)?;
+    let (train, test) = aim::train::views::load_phase_views(&data, aim_capture::Phase::Scan, train_cfg.resolution)?;
     println!("2/3 stage I (start-state 3DGS, preset cpu): {} training views, {} test views", train.len(), test.len());
     let bar = super::progress::Progress::new("stage I", train_cfg.iterations);
     let never = AtomicBool::new(false);
@@ -86,12 +86,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dyn_cfg.iterations
     );
     let static_ply = args.out.join("static").join("static.ply");
-    let control = super::train_dynamic::RunControl { resume: false, interrupt: &never, viz: &viz };
-    let Some((parts, report)) =
-        super::train_dynamic::train_and_analyse(&data, &static_ply, &args.out.join("dynamic"), dyn_cfg, &control)?
+    let control = aim::train::dynamic_run::RunControl { resume: false, interrupt: &never, viz: &viz };
+    let Some((parts, metrics)) =
+        super::train_dynamic::train_with_progress(&data, &static_ply, &args.out.join("dynamic"), dyn_cfg, &control)?
     else {
         bail!("stage II was interrupted")
     };
-    super::train_dynamic::print_joints(&parts, report.as_ref());
+    super::train_dynamic::print_joints(&parts, metrics.gt_report.as_ref());
     Ok(())
 }

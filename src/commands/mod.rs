@@ -4,6 +4,8 @@
 pub mod bench;
 pub mod capture;
 pub mod demo;
+pub mod eval;
+pub mod mesh;
 pub mod progress;
 pub mod render;
 pub mod synth;

@@ -7,8 +7,7 @@ use anyhow::bail;
 use aim::splat::ply::PointCloud;
 use aim::train::config::{StageConfig, StaticConfig};
 use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
-use aim::train::views::views_from_frames;
-use aim_capture::dataset::{load_aim_transforms, LoadOptions};
+use aim::train::views::load_phase_views;
 use aim_capture::Phase;
 
 #[derive(clap::Args)]
@@ -61,39 +60,6 @@ impl RerunArgs {
         };
         Ok(aim::viz::Viz::new("aim", &target)?)
     }
-}
-
-/// Load the train and test views of one phase folder of an AiM-layout dataset
-/// (`start` for Phase::Scan, `motion` for Phase::Motion), checking the training
-/// images agree in size.
-pub fn load_phase_views(
-    dataset: &Path,
-    phase: Phase,
-    width: u32,
-) -> anyhow::Result<(Vec<aim::train::views::TrainView>, Vec<aim::train::views::TrainView>)> {
-    let folder = match phase {
-        Phase::Scan => "start",
-        Phase::Motion => "motion",
-        Phase::After => "end",
-    };
-    let opts = LoadOptions { depth: false };
-    let train_path = dataset.join(folder).join("transforms_train.json");
-    let frames = load_aim_transforms(&train_path, phase, &opts)?;
-    if frames.is_empty() {
-        bail!("{}: the frame list is empty", train_path.display());
-    }
-    let (w0, h0) = (frames[0].image.width(), frames[0].image.height());
-    if let Some(bad) = frames.iter().find(|f| (f.image.width(), f.image.height()) != (w0, h0)) {
-        bail!(
-            "{}: image is {}x{} but the other training images are {w0}x{h0}",
-            bad.source,
-            bad.image.width(),
-            bad.image.height()
-        );
-    }
-    let test_path = dataset.join(folder).join("transforms_test.json");
-    let test_frames = if test_path.exists() { load_aim_transforms(&test_path, phase, &opts)? } else { Vec::new() };
-    Ok((views_from_frames(&frames, width)?, views_from_frames(&test_frames, width)?))
 }
 
 /// Initial points from a PLY point cloud or a COLMAP sparse model folder.

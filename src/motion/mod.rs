@@ -244,5 +244,63 @@ pub fn sequential_ransac(
     (groups, remaining)
 }
 
+/// The ablation baseline of the paper's Table 4: K-means with a given part
+/// count on the trajectories (each point's positions at all time samples,
+/// concatenated), k-means++ seeding from `seed`, then one rigid fit per cluster.
+/// Empty clusters are dropped.
+pub fn kmeans_rigid_parts(traj: &Trajectories, parts: usize, seed: u64) -> Vec<RigidGroup> {
+    let n = traj.len();
+    if n == 0 || parts == 0 {
+        return Vec::new();
+    }
+    let feature = |i: usize| -> Vec<f64> { traj.positions.iter().flat_map(|p| p[i].to_array()).collect() };
+    let features: Vec<Vec<f64>> = (0..n).map(feature).collect();
+    let dist2 = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut centres = vec![features[rand::Rng::random_range(&mut rng, 0..n)].clone()];
+    while centres.len() < parts.min(n) {
+        let d: Vec<f64> =
+            features.iter().map(|f| centres.iter().map(|c| dist2(f, c)).fold(f64::INFINITY, f64::min)).collect();
+        let total: f64 = d.iter().sum();
+        if total <= 0.0 {
+            break;
+        }
+        let mut x = rand::Rng::random_range(&mut rng, 0.0..total);
+        let pick = d.iter().position(|&di| {
+            x -= di;
+            x <= 0.0
+        });
+        centres.push(features[pick.unwrap_or(n - 1)].clone());
+    }
+    let mut label = vec![0usize; n];
+    for _ in 0..100 {
+        let mut changed = false;
+        for (i, f) in features.iter().enumerate() {
+            let best = (0..centres.len())
+                .min_by(|&a, &b| dist2(f, &centres[a]).total_cmp(&dist2(f, &centres[b])))
+                .unwrap_or(0);
+            changed |= best != label[i];
+            label[i] = best;
+        }
+        for (c, centre) in centres.iter_mut().enumerate() {
+            let members: Vec<&Vec<f64>> =
+                features.iter().zip(&label).filter(|(_, &l)| l == c).map(|(f, _)| f).collect();
+            if !members.is_empty() {
+                for (k, v) in centre.iter_mut().enumerate() {
+                    *v = members.iter().map(|m| m[k]).sum::<f64>() / members.len() as f64;
+                }
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    (0..centres.len())
+        .map(|c| (0..n).filter(|&i| label[i] == c).collect::<Vec<_>>())
+        .filter(|m| m.len() >= 3)
+        .map(|m| group_from(traj, m))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests;

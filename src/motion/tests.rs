@@ -5,7 +5,7 @@
 //! the sampling about as dense as trained Gaussians (spacing well under the
 //! 5 cm connectivity radius).
 
-use glam::{DVec3, Vec3};
+use glam::DVec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -13,35 +13,6 @@ use super::*;
 use crate::eval::{match_joints, GtJoint, PredictedJoint};
 use crate::synth::objects::object;
 use crate::synth::JointType;
-
-/// Area-uniform samples on a part's surface (rest frame).
-fn surface_points(mesh: &crate::synth::geometry::MeshData, n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec3> {
-    let tri = |t: &[u32; 3]| [mesh.vertices[t[0] as usize], mesh.vertices[t[1] as usize], mesh.vertices[t[2] as usize]];
-    let areas: Vec<f32> = mesh
-        .triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = tri(t);
-            0.5 * (b - a).cross(c - a).length()
-        })
-        .collect();
-    let total: f32 = areas.iter().sum();
-    (0..n)
-        .map(|_| {
-            let mut x = rng.random_range(0.0..total);
-            let k = areas.iter().position(|a| {
-                x -= a;
-                x <= 0.0
-            });
-            let [a, b, c] = tri(&mesh.triangles[k.unwrap_or(areas.len() - 1)]);
-            let (mut u, mut v): (f32, f32) = (rng.random(), rng.random());
-            if u + v > 1.0 {
-                (u, v) = (1.0 - u, 1.0 - v);
-            }
-            a + (b - a) * u + (c - a) * v
-        })
-        .collect()
-}
 
 struct Case {
     positions: Vec<Vec<DVec3>>,
@@ -56,7 +27,7 @@ fn case(name: &str, per_part: usize, noise: f64, seed: u64) -> Case {
     let mut positions = vec![Vec::new(); times.len()];
     let mut labels = Vec::new();
     for j in &obj.joints {
-        let pts = surface_points(&obj.parts[j.part].mesh(24), per_part, &mut rng);
+        let pts = obj.parts[j.part].mesh(24).sample_surface_with(per_part, &mut rng);
         for p in pts {
             for (k, t) in times.iter().enumerate() {
                 let q = obj.part_transform(j.part, *t).transform_point3(p).as_dvec3();

@@ -7,6 +7,8 @@ use std::sync::Arc;
 
 use glam::{Mat3, Vec3};
 
+use crate::mesh::MeshData;
+
 /// Hits closer than this along a ray are ignored (self-intersection guard).
 pub const RAY_EPS: f32 = 1e-6;
 
@@ -506,49 +508,6 @@ impl Shape {
                 out.triangles.extend(m.triangles.iter().map(|t| [t[0] + base, t[1] + base, t[2] + base]));
             }
         }
-    }
-}
-
-/// A plain indexed triangle mesh (for ground-truth export).
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct MeshData {
-    pub vertices: Vec<Vec3>,
-    pub triangles: Vec<[u32; 3]>,
-}
-
-impl MeshData {
-    pub fn transformed(&self, m: &glam::Affine3A) -> Self {
-        Self {
-            vertices: self.vertices.iter().map(|&v| m.transform_point3(v)).collect(),
-            triangles: self.triangles.clone(),
-        }
-    }
-
-    /// Wavefront OBJ text (1-based indices).
-    pub fn to_obj(&self, comment: &str) -> String {
-        use std::fmt::Write;
-        let mut s = String::with_capacity(self.vertices.len() * 40 + self.triangles.len() * 24);
-        for line in comment.lines() {
-            let _ = writeln!(s, "# {line}");
-        }
-        for v in &self.vertices {
-            let _ = writeln!(s, "v {:.6} {:.6} {:.6}", v.x, v.y, v.z);
-        }
-        for t in &self.triangles {
-            let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
-        }
-        s
-    }
-
-    /// Total surface area.
-    pub fn area(&self) -> f32 {
-        self.triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
-                0.5 * (b - a).cross(c - a).length()
-            })
-            .sum()
     }
 }
 

@@ -116,17 +116,26 @@ impl JointsFile {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let f: JointsFile =
             serde_json::from_str(&text).map_err(|e| Error::bad_file(path, format!("not a joints file: {e}")))?;
-        for j in &f.joints {
-            let a = Vec3::from(j.axis);
-            if !a.is_finite() || (a.length() - 1.0).abs() > 1e-3 {
-                return Err(Error::bad_file(path, format!("joint of part {}: axis {a} is not a unit vector", j.part)));
-            }
-            if !f.parts.iter().any(|p| p.id == j.part) {
-                return Err(Error::bad_file(path, format!("joint refers to unknown part {}", j.part)));
-            }
-        }
+        validate_joints(path, &f.joints, &f.parts.iter().map(|p| p.id).collect::<Vec<_>>())?;
         Ok(f)
     }
+}
+
+/// Check joint records read from `path`: unit axes, and parts among `part_ids`.
+pub fn validate_joints(path: &Path, joints: &[JointRecord], part_ids: &[usize]) -> Result<()> {
+    for j in joints {
+        let a = Vec3::from(j.axis);
+        if !a.is_finite() || (a.length() - 1.0).abs() > 1e-3 {
+            return Err(Error::bad_file(path, format!("joint of part {}: axis {a} is not a unit vector", j.part)));
+        }
+        if !part_ids.contains(&j.part) {
+            return Err(Error::bad_file(path, format!("joint refers to unknown part {}", j.part)));
+        }
+        if !(j.range[0].is_finite() && j.range[1].is_finite() && Vec3::from(j.origin).is_finite()) {
+            return Err(Error::bad_file(path, format!("joint of part {}: non-finite origin or range", j.part)));
+        }
+    }
+    Ok(())
 }
 
 #[derive(Serialize)]
@@ -202,40 +211,4 @@ pub fn write_ground_truth(object: &ArticulatedObject, dir: &Path) -> Result<()> 
         }
     }
     Ok(())
-}
-
-/// Read a Wavefront OBJ written by [`write_ground_truth`] (v and f lines; polygons fanned).
-pub fn read_obj(path: &Path) -> Result<super::geometry::MeshData> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let mut m = super::geometry::MeshData::default();
-    for (ln, line) in text.lines().enumerate() {
-        let mut it = line.split_whitespace();
-        match it.next() {
-            Some("v") => {
-                let v: Vec<f32> = it
-                    .take(3)
-                    .map(|s| s.parse::<f32>())
-                    .collect::<std::result::Result<_, _>>()
-                    .map_err(|e| Error::bad_file(path, format!("line {}: bad vertex: {e}", ln + 1)))?;
-                if v.len() != 3 {
-                    return Err(Error::bad_file(path, format!("line {}: vertex needs 3 coordinates", ln + 1)));
-                }
-                m.vertices.push(Vec3::new(v[0], v[1], v[2]));
-            }
-            Some("f") => {
-                let idx: Vec<u32> = it
-                    .map(|s| s.split('/').next().unwrap_or("").parse::<u32>())
-                    .collect::<std::result::Result<_, _>>()
-                    .map_err(|e| Error::bad_file(path, format!("line {}: bad face: {e}", ln + 1)))?;
-                if idx.len() < 3 || idx.iter().any(|&i| i == 0 || i as usize > m.vertices.len()) {
-                    return Err(Error::bad_file(path, format!("line {}: face index out of range", ln + 1)));
-                }
-                for k in 1..idx.len() - 1 {
-                    m.triangles.push([idx[0] - 1, idx[k] - 1, idx[k + 1] - 1]);
-                }
-            }
-            _ => {}
-        }
-    }
-    Ok(m)
 }

@@ -49,7 +49,7 @@ pub mod scene;
 pub mod texture;
 
 pub use dataset::{plan_views, write_dataset, DatasetSummary, PlannedView, SynthConfig};
-pub use geometry::{Aabb, MeshData, Ray, Shape};
+pub use geometry::{Aabb, Ray, Shape};
 pub use gt::{JointRecord, JointsFile};
 pub use objects::{object, OBJECT_NAMES};
 pub use render::{camera_ray, render, RenderOptions, RenderOutput, BACKGROUND_ID};

@@ -5,8 +5,9 @@ use std::sync::Arc;
 use glam::{Affine3A, Mat3, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
-use super::geometry::{Aabb, Bvh, MeshData, Ray, Shape};
+use super::geometry::{Aabb, Bvh, Ray, Shape};
 use super::texture::Material;
+use crate::mesh::MeshData;
 
 /// A shape with its material, in its part's rest frame.
 #[derive(Clone, Debug)]

@@ -12,7 +12,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::deform::{DeformConfig, DeformNet};
 use crate::error::{Error, Result};
-use crate::motion::{extract_joint, segment_rigid_parts, JointEstimate, RansacConfig, Rigid, Trajectories};
+use crate::motion::{
+    extract_joint, kmeans_rigid_parts, segment_rigid_parts, JointEstimate, RansacConfig, Rigid, Trajectories,
+};
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::{sigmoid, GaussianSet};
 use crate::train::config::{DensityConfig, LrConfig, Preset, StageConfig};
@@ -81,6 +83,12 @@ pub struct DynamicConfig {
     /// ... and translating at most this (world units) between t = 0 and 1 are static.
     pub sdmd_max_translation: f64,
     pub ransac: RansacConfig,
+    /// Stage III by K-means with this many parts instead of sequential RANSAC
+    /// (0 = sequential RANSAC; the paper's Table 4 ablation uses the true count).
+    pub kmeans_parts: usize,
+    /// One deformable set for everything (the paper's "Ours-b" ablation): every
+    /// start-state Gaussian is moving, the static set starts empty.
+    pub single_deformable_set: bool,
     pub lambda_dssim: f32,
     pub random_background: bool,
     pub eval_background: [f32; 3],
@@ -121,6 +129,8 @@ impl DynamicConfig {
             sdmd_max_rotation: 0.1,
             sdmd_max_translation: 0.05,
             ransac: RansacConfig::default(),
+            kmeans_parts: 0,
+            single_deformable_set: false,
             lambda_dssim: 0.2,
             random_background: true,
             eval_background: [1.0; 3],
@@ -372,6 +382,10 @@ pub fn network_time(t: f32) -> f32 {
 impl DualTrainer {
     /// Start from a trained static set.
     pub fn new(config: DynamicConfig, static_gaussians: GaussianSet, views: &StageTwoViews) -> Result<Self> {
+        if config.single_deformable_set {
+            let sh_degree = static_gaussians.sh_degree;
+            return Ok(Self::from_sets(config, GaussianSet::new(sh_degree), static_gaussians, views));
+        }
         let moving = match config.moving_init {
             MovingInit::Random => {
                 let pts = random_points(
@@ -402,17 +416,21 @@ impl DualTrainer {
                 moving
             }
         };
+        Ok(Self::from_sets(config, static_gaussians, moving, views))
+    }
+
+    fn from_sets(config: DynamicConfig, static_set: GaussianSet, moving: GaussianSet, views: &StageTwoViews) -> Self {
         let net = DeformNet::new(config.deform.clone(), config.seed);
         let net_adam = AdamBuffer::zeros(net.parameter_count());
-        Ok(Self {
+        Self {
             extent: camera_extent(&views.motion),
-            static_set: OptimizedSet::new(static_gaussians),
+            static_set: OptimizedSet::new(static_set),
             moving: OptimizedSet::new(moving),
             net,
             net_adam,
             iteration: 0,
             config,
-        })
+        }
     }
 
     /// Learning rates at `it`; without `positions` only the opacity trains.
@@ -664,7 +682,12 @@ impl DualTrainer {
             return (Vec::new(), index);
         }
         let cfg = self.ransac_for(index.len());
-        let (groups, rest) = segment_rigid_parts(&Trajectories { positions: &traj }, &cfg);
+        let trajectories = Trajectories { positions: &traj };
+        let (groups, rest) = if self.config.kmeans_parts > 0 {
+            (kmeans_rigid_parts(&trajectories, self.config.kmeans_parts, cfg.seed), Vec::new())
+        } else {
+            segment_rigid_parts(&trajectories, &cfg)
+        };
         let rest = rest.into_iter().map(|i| index[i]).collect();
         let parts = groups
             .into_iter()

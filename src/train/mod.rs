@@ -3,6 +3,7 @@
 pub mod checkpoint;
 pub mod config;
 pub mod density;
+pub mod dynamic_run;
 pub mod dynamic_stage;
 pub mod init;
 pub mod loss;

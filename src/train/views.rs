@@ -112,3 +112,39 @@ pub fn camera_extent(views: &[TrainView]) -> f32 {
     let r = centres.iter().map(|c| c.distance(mean)).fold(0.0f32, f32::max);
     (1.1 * r).max(1e-3)
 }
+
+/// Load the train and test views of one phase folder of an AiM-layout dataset
+/// (`start` for Phase::Scan, `motion` for Phase::Motion, `end` for Phase::After),
+/// checking that the training images agree in size; no test list = no test views.
+pub fn load_phase_views(
+    dataset: &std::path::Path,
+    phase: aim_capture::Phase,
+    width: u32,
+) -> Result<(Vec<TrainView>, Vec<TrainView>)> {
+    use aim_capture::dataset::{load_aim_transforms, LoadOptions};
+    let folder = match phase {
+        aim_capture::Phase::Scan => "start",
+        aim_capture::Phase::Motion => "motion",
+        aim_capture::Phase::After => "end",
+    };
+    let opts = LoadOptions { depth: false };
+    let train_path = dataset.join(folder).join("transforms_train.json");
+    let frames = load_aim_transforms(&train_path, phase, &opts)?;
+    let Some(first) = frames.first() else {
+        return Err(Error::bad_file(&train_path, "the frame list is empty"));
+    };
+    let (w0, h0) = (first.image.width(), first.image.height());
+    if let Some(bad) = frames.iter().find(|f| (f.image.width(), f.image.height()) != (w0, h0)) {
+        return Err(Error::bad_file(
+            &bad.source,
+            format!(
+                "image is {}x{} but the other training images are {w0}x{h0}",
+                bad.image.width(),
+                bad.image.height()
+            ),
+        ));
+    }
+    let test_path = dataset.join(folder).join("transforms_test.json");
+    let test_frames = if test_path.exists() { load_aim_transforms(&test_path, phase, &opts)? } else { Vec::new() };
+    Ok((views_from_frames(&frames, width)?, views_from_frames(&test_frames, width)?))
+}

@@ -5,6 +5,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::motion::{JointEstimate, JointKind};
 
+pub mod shape;
+pub mod twin;
+
 /// Axis angle error in degrees, orientation-invariant: min(theta, 180 - theta).
 pub fn axis_angle_error_deg(a: DVec3, b: DVec3) -> f64 {
     let c = a.normalize().dot(b.normalize()).clamp(-1.0, 1.0);
@@ -114,53 +117,45 @@ fn match_cost(e: &JointErrors) -> f64 {
 }
 
 /// Assign predicted joints to GT joints with the least total error (types must
-/// agree; see `match_cost`), exhaustively over assignments (objects have few parts):
-/// the most matches first, then the least cost.
+/// agree; see `match_cost`) by the Hungarian method (`pathfinding`'s
+/// Kuhn-Munkres) on a square matrix: a pair of other types and a padding row or
+/// column cost more than any set of real pairs, so the assignment has the most
+/// matches first, then the least cost.
 pub fn match_joints(pred: &[PredictedJoint], gt: &[GtJoint]) -> ArticulationReport {
-    fn search(
-        gi: usize,
-        pred: &[PredictedJoint],
-        gt: &[GtJoint],
-        used: &mut Vec<bool>,
-        current: &mut Vec<Option<usize>>,
-        best: &mut (usize, f64, Vec<Option<usize>>),
-    ) {
-        if gi == gt.len() {
-            let n = current.iter().filter(|c| c.is_some()).count();
-            let cost: f64 = current
-                .iter()
-                .enumerate()
-                .filter_map(|(g, p)| p.and_then(|p| errors(&pred[p], &gt[g], p)).map(|e| match_cost(&e)))
-                .sum();
-            if n > best.0 || (n == best.0 && cost < best.1) {
-                *best = (n, cost, current.clone());
-            }
-            return;
-        }
-        current.push(None);
-        search(gi + 1, pred, gt, used, current, best);
-        current.pop();
-        for p in 0..pred.len() {
-            if !used[p] && pred[p].joint.kind == gt[gi].kind {
-                used[p] = true;
-                current.push(Some(p));
-                search(gi + 1, pred, gt, used, current, best);
-                current.pop();
-                used[p] = false;
-            }
-        }
-    }
-    let mut best = (0, f64::INFINITY, vec![None; gt.len()]);
-    search(0, pred, gt, &mut vec![false; pred.len()], &mut Vec::new(), &mut best);
-    let assignment = best.2;
+    use pathfinding::prelude::{kuhn_munkres_min, Matrix};
+    // Costs in micro-units as integers (the solver needs an exact ordered sum);
+    // one real pair costs at most REAL_CAP, and UNMATCHED exceeds any sum of them.
+    const SCALE: f64 = 1e6;
+    const REAL_CAP: i64 = 1_000_000_000_000;
+    let n = pred.len().max(gt.len());
+    let unmatched = REAL_CAP * (n as i64 + 1);
     let mut report = ArticulationReport::default();
-    for (g, p) in assignment.iter().enumerate() {
-        match p.and_then(|p| errors(&pred[p], &gt[g], p)) {
-            Some(e) => report.matched.push(e),
-            None => report.missing.push(gt[g].part),
+    if n == 0 {
+        return report;
+    }
+    let cost = |g: usize, p: usize| -> i64 {
+        match (gt.get(g), pred.get(p)) {
+            (Some(gj), Some(pj)) => errors(pj, gj, p)
+                .map(|e| match_cost(&e))
+                .filter(|c| c.is_finite())
+                .map_or(unmatched, |c| ((c * SCALE).round() as i64).min(REAL_CAP)),
+            _ => unmatched,
+        }
+    };
+    let weights = Matrix::from_fn(n, n, |(g, p)| cost(g, p));
+    let (_, assignment) = kuhn_munkres_min(&weights);
+    let mut used = vec![false; pred.len()];
+    for (g, gj) in gt.iter().enumerate() {
+        let p = assignment[g];
+        match (cost(g, p) < unmatched).then(|| errors(&pred[p], gj, p)).flatten() {
+            Some(e) => {
+                used[p] = true;
+                report.matched.push(e);
+            }
+            None => report.missing.push(gj.part),
         }
     }
-    report.extra = (0..pred.len()).filter(|p| !assignment.contains(&Some(*p))).collect();
+    report.extra = (0..pred.len()).filter(|&p| !used[p]).collect();
     report
 }
 
@@ -212,5 +207,58 @@ mod tests {
         assert!(r.matched.is_empty());
         assert_eq!(r.missing, vec![1]);
         assert_eq!(r.extra, vec![0]);
+    }
+
+    fn revolute(origin: DVec3, amount: f64) -> PredictedJoint {
+        let rotation = DMat3::from_axis_angle(DVec3::Z, amount);
+        PredictedJoint {
+            joint: JointEstimate {
+                kind: JointKind::Revolute,
+                axis: DVec3::Z,
+                origin,
+                amount,
+                translation_along_axis: 0.0,
+            },
+            rotation,
+            translation: origin - rotation * origin,
+        }
+    }
+
+    #[test]
+    fn assignment_tells_parallel_doors_apart_and_reports_the_extra_one() {
+        // Two doors on parallel vertical hinges 0.6 m apart; three predictions given in
+        // another order, one of them far from both hinges.
+        let gt = [
+            GtJoint {
+                part: 1,
+                kind: JointKind::Revolute,
+                axis: DVec3::Z,
+                origin: DVec3::new(0.3, 0.0, 0.0),
+                range: [0.0, 1.5],
+            },
+            GtJoint {
+                part: 2,
+                kind: JointKind::Revolute,
+                axis: DVec3::Z,
+                origin: DVec3::new(-0.3, 0.0, 0.0),
+                range: [0.0, -1.5],
+            },
+        ];
+        let pred = [
+            revolute(DVec3::new(2.0, 2.0, 0.0), 0.5),
+            revolute(DVec3::new(-0.31, 0.0, 0.0), -1.49),
+            revolute(DVec3::new(0.3, 0.01, 0.0), 1.5),
+        ];
+        let r = match_joints(&pred, &gt);
+        let by_gt: Vec<(usize, usize)> = r.matched.iter().map(|e| (e.gt_part, e.predicted)).collect();
+        assert_eq!(by_gt, vec![(1, 2), (2, 1)]);
+        assert_eq!(r.extra, vec![0]);
+        assert!(r.missing.is_empty());
+        assert!((r.matched[1].axis_position.unwrap() - 0.1).abs() < 1e-9);
+        assert!((r.matched[1].part_motion - 0.01f64.to_degrees()).abs() < 1e-6);
+        // Fewer predictions than parts: the unmatched part is missing.
+        let r = match_joints(&pred[2..], &gt);
+        assert_eq!(r.missing, vec![2]);
+        assert!(r.extra.is_empty());
     }
 }
