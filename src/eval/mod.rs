@@ -46,7 +46,7 @@ pub struct GtJoint {
 
 impl GtJoint {
     /// Relative motion from t = 0 to t = 1: (rotation, translation of the axis point's frame).
-    fn relative(&self) -> (DMat3, DVec3) {
+    pub(crate) fn relative(&self) -> (DMat3, DVec3) {
         let d = self.range[1] - self.range[0];
         match self.kind {
             JointKind::Revolute => {

@@ -5,7 +5,6 @@
 
 use std::path::{Path, PathBuf};
 
-use glam::DMat3;
 use serde::{Deserialize, Serialize};
 
 use super::shape::{chamfer_meshes, iou_meshes, ChamferDistance};
@@ -108,13 +107,7 @@ pub fn gt_joint(j: &JointRecord) -> GtJoint {
 fn predicted_joint(j: &JointRecord) -> PredictedJoint {
     let g = gt_joint(j);
     let amount = g.range[1] - g.range[0];
-    let (rotation, translation) = match g.kind {
-        JointKind::Revolute => {
-            let r = DMat3::from_axis_angle(g.axis.normalize(), amount);
-            (r, g.origin - r * g.origin)
-        }
-        JointKind::Prismatic => (DMat3::IDENTITY, g.axis.normalize() * amount),
-    };
+    let (rotation, translation) = g.relative();
     let translation_along_axis = if g.kind == JointKind::Prismatic { amount } else { 0.0 };
     PredictedJoint {
         joint: JointEstimate { kind: g.kind, axis: g.axis, origin: g.origin, amount, translation_along_axis },
