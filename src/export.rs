@@ -195,7 +195,8 @@ mod tests {
         let art = write_twin(
             &dir,
             &[TwinPart { gaussians: &base, joint: None }, TwinPart { gaussians: &door, joint: Some(joint) }],
-            &TsdfConfig::default(),
+            // A coarse volume: these few random Gaussians only need some mesh, fast.
+            &TsdfConfig { voxel_fraction: 0.02, ..TsdfConfig::default() },
         )
         .expect("written");
         let back: Articulation =
@@ -209,5 +210,19 @@ mod tests {
         let only_door = [TwinPart { gaussians: &door, joint: Some(joint) }];
         assert!(write_twin(&dir, &only_door, &TsdfConfig::default()).is_err());
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_part_mesh_moved_to_the_end_state_is_the_ground_truth_end_mesh() {
+        for name in ["fridge", "storage"] {
+            let obj = crate::synth::object(name).expect("object");
+            let (start, end) = (obj.meshes_at(0.0, 16), obj.meshes_at(1.0, 16));
+            let j = &obj.joints[0];
+            let record = JointRecord::from_joint(j);
+            let moved = mesh_at_state(&start[j.part], &record, j.range[1]);
+            let worst =
+                moved.vertices.iter().zip(&end[j.part].vertices).map(|(a, b)| (*a - *b).length()).fold(0.0, f32::max);
+            assert!(worst < 1e-5, "{name}: {worst}");
+        }
     }
 }

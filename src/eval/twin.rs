@@ -116,19 +116,26 @@ fn predicted_joint(j: &JointRecord) -> PredictedJoint {
     }
 }
 
-/// Each twin part's start-state mesh: its mesh file, or extracted from its Gaussians.
+/// Each twin part's start-state mesh: its mesh file, or extracted from its
+/// Gaussians (read only when some part has no mesh file; a part that gives no
+/// surface is logged and has None).
 fn twin_meshes(dir: &Path, art: &Articulation, cfg: &TsdfConfig) -> Result<Vec<Option<MeshData>>> {
-    let sets =
-        art.parts.iter().map(|p| crate::splat::ply::read_ply(&dir.join(&p.gaussians))).collect::<Result<Vec<_>>>()?;
+    let sets = if art.parts.iter().any(|p| p.mesh.is_none()) {
+        art.parts.iter().map(|p| crate::splat::ply::read_ply(&dir.join(&p.gaussians))).collect::<Result<Vec<_>>>()?
+    } else {
+        Vec::new()
+    };
     let size = object_size(&sets, cfg.min_opacity);
     art.parts
         .iter()
-        .zip(&sets)
-        .map(|(p, gs)| match (&p.mesh, size) {
+        .enumerate()
+        .map(|(k, p)| match (&p.mesh, size) {
             (Some(file), _) => read_obj(&dir.join(file)).map(Some),
             (None, Some(size)) => {
                 tracing::info!("twin part {}: no mesh file, extracting one from {}", p.id, p.gaussians);
-                Ok(mesh_gaussians(gs, size, cfg).ok())
+                Ok(mesh_gaussians(&sets[k], size, cfg)
+                    .inspect_err(|e| tracing::warn!("twin part {}: no mesh ({e})", p.id))
+                    .ok())
             }
             (None, None) => Ok(None),
         })

@@ -159,22 +159,10 @@ impl DepthView {
                     (nx < w && ny < h).then(|| z(nx, ny).map(|nd| point(nx, ny, nd))).flatten()
                 };
                 let c = point(x, y, d);
-                let weight = match (
-                    neighbour(1, 0).or(Some(c)),
-                    neighbour(-1, 0).or(Some(c)),
-                    neighbour(0, 1).or(Some(c)),
-                    neighbour(0, -1).or(Some(c)),
-                ) {
-                    (Some(r), Some(l), Some(dn), Some(up)) => {
-                        let n = (r - l).cross(dn - up);
-                        if n.length_squared() > 0.0 {
-                            n.normalize().dot(c.normalize()).abs()
-                        } else {
-                            0.0
-                        }
-                    }
-                    _ => 0.0,
-                };
+                // A missing neighbour (silhouette, image edge) stands in as the pixel itself.
+                let at = |dx, dy| neighbour(dx, dy).unwrap_or(c);
+                let n = (at(1, 0) - at(-1, 0)).cross(at(0, 1) - at(0, -1));
+                let weight = if n.length_squared() > 0.0 { n.normalize().dot(c.normalize()).abs() } else { 0.0 };
                 out[y * w + x] = Some((d, weight.max(0.05)));
             }
         }
