@@ -10,14 +10,18 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use super::dynamic_stage::{
-    load_checkpoint, save_checkpoint, DualTrainer, DynamicConfig, DynamicStep, PartEstimate, StageTwoViews,
+    load_checkpoint, save_checkpoint, DualTrainer, DynamicConfig, DynamicStep, PartEstimate, StageTwoMethod,
+    StageTwoViews,
 };
+use super::track::NodeTracker;
+use super::views::TrainView;
 use super::static_stage::peak_rss_mib;
 use super::views::load_phase_views;
 use crate::error::{write_atomic, Error, Result};
 use crate::eval::{match_joints, ArticulationReport, PredictedJoint};
 use crate::export::{write_twin, TwinPart};
 use crate::mesh::tsdf::TsdfConfig;
+use crate::splat::GaussianSet;
 use crate::viz::Viz;
 use aim_capture::Phase;
 
@@ -91,8 +95,10 @@ fn log_step(viz: &Viz, s: &DynamicStep) {
 }
 
 /// Train stages II and III on `dataset` from the start-state Gaussians in
-/// `static_ply` into `out`: moving.ply, static_pruned.ply, deform.bin,
-/// checkpoint.bin, metrics.json and the twin in out/twin (meshes by `mesh`).
+/// `static_ply` into `out`: checkpoint.bin, metrics.json, the twin in out/twin
+/// (meshes by `mesh`), and the method's own outputs (dual field: moving.ply,
+/// static_pruned.ply, deform.bin; node tracking: static_pruned.ply, moving.ply
+/// at t = 0, track.bin: the node poses at the knots).
 pub fn run_dynamic(
     dataset: &Path,
     static_ply: &Path,
@@ -100,9 +106,35 @@ pub fn run_dynamic(
     cfg: DynamicConfig,
     mesh: &TsdfConfig,
     control: &RunControl,
-    mut progress: impl FnMut(&DynamicStep),
+    progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
     let (motion, test) = load_phase_views(dataset, Phase::Motion, cfg.resolution)?;
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let run = RunFiles { dataset, static_ply, out, mesh, test: &test };
+    match cfg.method {
+        StageTwoMethod::DualField => run_dual_field(&run, motion, cfg, control, progress),
+        StageTwoMethod::NodeTrack => run_node_track(&run, motion, cfg, control, progress),
+    }
+}
+
+/// Where a stage II run reads and writes.
+struct RunFiles<'a> {
+    dataset: &'a Path,
+    static_ply: &'a Path,
+    out: &'a Path,
+    mesh: &'a TsdfConfig,
+    /// Held-out motion frames.
+    test: &'a [TrainView],
+}
+
+fn run_dual_field(
+    run: &RunFiles,
+    motion: Vec<TrainView>,
+    cfg: DynamicConfig,
+    control: &RunControl,
+    mut progress: impl FnMut(&DynamicStep),
+) -> Result<DynamicOutcome> {
+    let (dataset, out) = (run.dataset, run.out);
     let (start, _) = load_phase_views(dataset, Phase::Scan, cfg.resolution)?;
     // The end state is optional: a capture may stop right after the motion.
     let end = if dataset.join("end").join("transforms_train.json").exists() {
@@ -111,7 +143,6 @@ pub fn run_dynamic(
         Vec::new()
     };
     let views = StageTwoViews::new(motion, start, end)?;
-    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let checkpoint = out.join("checkpoint.bin");
     let (mut trainer, elapsed_before) = if control.resume && checkpoint.exists() {
         let (t, elapsed) = load_checkpoint(&checkpoint)?;
@@ -121,7 +152,7 @@ pub fn run_dynamic(
         tracing::info!(iteration = t.iteration, "resuming from {}", checkpoint.display());
         (t, elapsed)
     } else {
-        (DualTrainer::new(cfg, crate::splat::ply::read_ply(static_ply)?, &views)?, 0.0)
+        (DualTrainer::new(cfg, crate::splat::ply::read_ply(run.static_ply)?, &views)?, 0.0)
     };
     let started = Instant::now();
     let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();
@@ -153,7 +184,7 @@ pub fn run_dynamic(
         progress(&s);
     }
     save_checkpoint(&checkpoint, &trainer, elapsed(&started))?;
-    let motion_test_psnr = (!test.is_empty()).then(|| trainer.evaluate(&test));
+    let motion_test_psnr = (!run.test.is_empty()).then(|| trainer.evaluate(run.test));
     crate::splat::ply::write_ply(&out.join("moving.ply"), &trainer.moving.gaussians)?;
     crate::splat::ply::write_ply(&out.join("static_pruned.ply"), &trainer.static_set.gaussians)?;
     let net = postcard::to_stdvec(&trainer.net)
@@ -170,16 +201,165 @@ pub fn run_dynamic(
             start_pose.subset(&keep)
         })
         .collect();
-    let twin: Vec<TwinPart> = std::iter::once(TwinPart { gaussians: &trainer.static_set.gaussians, joint: None })
-        .chain(parts.iter().zip(&part_sets).map(|(p, g)| TwinPart { gaussians: g, joint: Some(p.joint) }))
-        .collect();
-    write_twin(&out.join("twin"), &twin, mesh)?;
     log_sets(control.viz, &trainer);
-    for (k, g) in part_sets.iter().enumerate() {
-        control.viz.gaussians(&format!("stage3/part_{}", k + 1), g);
+    let summary = RunSummary {
+        preset: trainer.config.preset.clone(),
+        iterations: trainer.iteration,
+        motion_test_psnr,
+        moving_gaussians: trainer.moving.gaussians.len(),
+        wall_time_s: elapsed(&started),
+    };
+    finish(run, control.viz, &trainer.static_set.gaussians, parts, &part_sets, summary)
+}
+
+fn run_node_track(
+    run: &RunFiles,
+    mut frames: Vec<TrainView>,
+    cfg: DynamicConfig,
+    control: &RunControl,
+    mut progress: impl FnMut(&DynamicStep),
+) -> Result<DynamicOutcome> {
+    let out = run.out;
+    if frames.iter().any(|v| v.time.is_none()) {
+        return Err(Error::Config("every motion view needs a time".into()));
     }
-    control.viz.flush();
-    let gt_path = dataset.join("gt").join("joints.json");
+    let time = |v: &TrainView| v.time.unwrap_or(0.0);
+    if frames.windows(2).any(|w| time(&w[1]) < time(&w[0])) {
+        tracing::warn!("the motion frames are not in time order; fitting them sorted by time");
+        frames.sort_by(|a, b| time(a).total_cmp(&time(b)));
+    }
+    let checkpoint = out.join("checkpoint.bin");
+    let (mut tracker, elapsed_before) = if control.resume && checkpoint.exists() {
+        let (t, elapsed) = load_track_checkpoint(&checkpoint)?;
+        if t.config != cfg {
+            return Err(Error::bad_file(&checkpoint, "written with another configuration; rerun without --resume"));
+        }
+        tracing::info!(segments = t.segments_done, "resuming from {}", checkpoint.display());
+        (t, elapsed)
+    } else {
+        (NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?)?, 0.0)
+    };
+    let started = Instant::now();
+    let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();
+    let per_segment = tracker.iterations_per_segment;
+    while tracker.segments_done < tracker.segments() {
+        if control.interrupt.load(Ordering::SeqCst) {
+            save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
+            return Ok(DynamicOutcome::Interrupted(tracker.segments_done as u32 * per_segment));
+        }
+        let fit = tracker.fit_next(&frames);
+        let step = DynamicStep {
+            iteration: fit.segments_done as u32 * per_segment,
+            loss: fit.loss,
+            psnr: fit.psnr,
+            static_count: tracker.gaussians.len(),
+            moving_count: 0,
+            sdmd_moved: 0,
+        };
+        log_step(control.viz, &step);
+        if tracker.knots.last().is_some_and(|p| p.iter().any(|p| !(p.translation.is_finite() && p.rotation.is_finite()))) {
+            return Err(Error::Other(format!("stage II tracking diverged in segment {}", fit.segments_done)));
+        }
+        // One segment is a few seconds of work: checkpoint after each.
+        if fit.segments_done < tracker.segments() {
+            save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
+            log_tracked(control.viz, &tracker);
+        }
+        progress(&step);
+    }
+    save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
+    tracker.merge_redundant_parts(&frames);
+    let motion_test_psnr = (!run.test.is_empty()).then(|| tracker.evaluate(run.test));
+    let (parts, labels) = tracker.analyse();
+    let with_label = |l: usize| tracker.gaussians.subset(&labels.iter().map(|&x| x == l).collect::<Vec<_>>());
+    let base = with_label(0);
+    let part_sets: Vec<_> = (1..=parts.len()).map(with_label).collect();
+    let moving = tracker.gaussians.subset(&labels.iter().map(|&x| x > 0).collect::<Vec<_>>());
+    crate::splat::ply::write_ply(&out.join("static_pruned.ply"), &base)?;
+    crate::splat::ply::write_ply(&out.join("moving.ply"), &moving)?;
+    let track = postcard::to_stdvec(&tracker.knots)
+        .map_err(|e| Error::Other(format!("encoding the tracked node poses: {e}")))?;
+    write_atomic(&out.join("track.bin"), &track)?;
+    log_tracked(control.viz, &tracker);
+    if parts.is_empty() {
+        tracing::warn!(
+            "no moving part found: nothing in the motion video moved by more than {} rad or {} (sdmd_max_rotation, sdmd_max_translation)",
+            tracker.config.sdmd_max_rotation,
+            tracker.config.sdmd_max_translation
+        );
+    }
+    let summary = RunSummary {
+        preset: tracker.config.preset.clone(),
+        iterations: tracker.segments_done as u32 * per_segment,
+        motion_test_psnr,
+        moving_gaussians: moving.len(),
+        wall_time_s: elapsed(&started),
+    };
+    finish(run, control.viz, &base, parts, &part_sets, summary)
+}
+
+const TRACK_CHECKPOINT_STAGE: &str = "stage II tracking";
+
+fn save_track_checkpoint(path: &Path, tracker: &NodeTracker, elapsed_s: f64) -> Result<()> {
+    crate::train::checkpoint::save(path, TRACK_CHECKPOINT_STAGE, tracker, elapsed_s)
+}
+
+fn load_track_checkpoint(path: &Path) -> Result<(NodeTracker, f64)> {
+    crate::train::checkpoint::load(path, TRACK_CHECKPOINT_STAGE, |t: &NodeTracker| {
+        t.gaussians.check_shapes()?;
+        let nodes = t.node_centres.len();
+        if t.binding.len() != t.gaussians.len() || t.binding.iter().any(|&k| k as usize >= nodes) {
+            return Err("the node binding does not match the Gaussians".into());
+        }
+        if t.knots.iter().any(|p| p.len() != nodes) || t.knots.len() != t.segments_done + 1 {
+            return Err("the node poses do not match the nodes".into());
+        }
+        if t.segments_done > t.segments() {
+            return Err(format!("{} segments fitted of {}", t.segments_done, t.segments()));
+        }
+        Ok(())
+    })
+}
+
+/// Log the tracked Gaussians at t = 0, 0.5, 1 to rerun.
+fn log_tracked(viz: &Viz, tracker: &NodeTracker) {
+    if !viz.is_enabled() {
+        return;
+    }
+    for (name, t) in [("t0", 0.0), ("t05", 0.5), ("t1", 1.0)] {
+        viz.gaussians(&format!("stage2/tracked/{name}"), &tracker.deformed(&tracker.poses_at(t)));
+    }
+}
+
+/// What a method reports for metrics.json besides the parts.
+struct RunSummary {
+    preset: String,
+    iterations: u32,
+    motion_test_psnr: Option<f32>,
+    moving_gaussians: usize,
+    wall_time_s: f64,
+}
+
+/// Write the twin (the static base and each part's Gaussians at t = 0), log the
+/// parts, match the joints with ground truth when the dataset has it, and write
+/// metrics.json.
+fn finish(
+    run: &RunFiles,
+    viz: &Viz,
+    base: &GaussianSet,
+    parts: Vec<PartEstimate>,
+    part_sets: &[GaussianSet],
+    summary: RunSummary,
+) -> Result<DynamicOutcome> {
+    let twin: Vec<TwinPart> = std::iter::once(TwinPart { gaussians: base, joint: None })
+        .chain(parts.iter().zip(part_sets).map(|(p, g)| TwinPart { gaussians: g, joint: Some(p.joint) }))
+        .collect();
+    write_twin(&run.out.join("twin"), &twin, run.mesh)?;
+    for (k, g) in part_sets.iter().enumerate() {
+        viz.gaussians(&format!("stage3/part_{}", k + 1), g);
+    }
+    viz.flush();
+    let gt_path = run.dataset.join("gt").join("joints.json");
     let gt_report = if gt_path.exists() {
         let gt: Vec<_> =
             crate::synth::JointsFile::load(&gt_path)?.joints.iter().map(crate::eval::twin::gt_joint).collect();
@@ -192,12 +372,12 @@ pub fn run_dynamic(
         None
     };
     let metrics = DynamicMetrics {
-        preset: trainer.config.preset.clone(),
-        iterations: trainer.iteration,
-        motion_test_psnr,
-        static_gaussians: trainer.static_set.gaussians.len(),
-        moving_gaussians: trainer.moving.gaussians.len(),
-        wall_time_s: elapsed(&started),
+        preset: summary.preset,
+        iterations: summary.iterations,
+        motion_test_psnr: summary.motion_test_psnr,
+        static_gaussians: base.len(),
+        moving_gaussians: summary.moving_gaussians,
+        wall_time_s: summary.wall_time_s,
         peak_rss_mib: peak_rss_mib(),
         parts: parts
             .iter()
@@ -212,6 +392,6 @@ pub fn run_dynamic(
         gt_report,
     };
     let json = serde_json::to_vec_pretty(&metrics).map_err(|e| Error::Other(e.to_string()))?;
-    write_atomic(&out.join("metrics.json"), &json)?;
+    write_atomic(&run.out.join("metrics.json"), &json)?;
     Ok(DynamicOutcome::Finished { parts, metrics: Box::new(metrics) })
 }

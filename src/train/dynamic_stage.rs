@@ -24,6 +24,7 @@ use crate::train::loss::{loss_and_grad, psnr};
 use crate::train::optim::{Adam, AdamBuffer, ExponLr, LearningRates};
 use crate::train::rigidity::{rigidity_loss, RigidityConfig};
 use crate::train::static_stage::{background_for, epoch_order_index, rng_for};
+use crate::train::track::TrackConfig;
 use crate::train::views::{camera_extent, TrainView};
 
 /// Stage II settings. Defaults from the paper; the official code's values where
@@ -32,6 +33,11 @@ use crate::train::views::{camera_extent, TrainView};
 #[serde(deny_unknown_fields)]
 pub struct DynamicConfig {
     pub preset: String,
+    /// How the motion is learnt: the paper's deformation field over the dual
+    /// Gaussian sets, or time-ordered node tracking of the start state.
+    pub method: StageTwoMethod,
+    /// Settings of `node_track`.
+    pub track: TrackConfig,
     pub iterations: u32,
     /// Train at this image width (0 = as recorded).
     pub resolution: u32,
@@ -104,6 +110,8 @@ impl DynamicConfig {
         let s = crate::train::config::StaticConfig::paper();
         Self {
             preset: "paper".into(),
+            method: StageTwoMethod::DualField,
+            track: TrackConfig::default(),
             iterations: 40_000,
             resolution: 0,
             seed: 0,
@@ -164,6 +172,13 @@ impl DynamicConfig {
         c.density.grad_threshold = 2e-4;
         c.density.max_gaussians = 30_000;
         c.lr.means_init = 4e-4;
+        // The method measured best on the benchmark (docs/training.md): node tracking
+        // at the recorded resolution (stage I's Gaussians rendered at half their
+        // training resolution alias badly: 28 instead of 37 dB on the same views).
+        c.method = StageTwoMethod::NodeTrack;
+        c.resolution = 256;
+        c.iterations = 3600;
+        c.random_background = false;
         c
     }
 }
@@ -217,6 +232,7 @@ impl StageConfig for DynamicConfig {
         if self.density.interval == 0 {
             return Err("density.interval must be at least 1".into());
         }
+        self.track.validate()?;
         for i in 0..3 {
             if self.init_box_min[i].partial_cmp(&self.init_box_max[i]) != Some(std::cmp::Ordering::Less) {
                 return Err(format!("init_box_min[{i}] must be below init_box_max[{i}]"));
@@ -224,6 +240,16 @@ impl StageConfig for DynamicConfig {
         }
         Ok(())
     }
+}
+
+/// How stage II learns the motion.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StageTwoMethod {
+    /// The paper: the dual Gaussian sets, a deformation network on the moving set, SDMD.
+    DualField,
+    /// Time-ordered tracking of the start state by control nodes ([`crate::train::track`]).
+    NodeTrack,
 }
 
 /// How stage II's moving set starts.
@@ -377,6 +403,49 @@ fn add_norm_gradient(grad: &mut [f32], x: &[f32], dim: usize, weight: f32) {
 /// Motion time in [0, 1] as the network's time input (the one place the mapping lives).
 pub fn network_time(t: f32) -> f32 {
     t
+}
+
+/// RANSAC settings for this many candidate points: a part must hold at least
+/// `MIN_PART_FRACTION` of them (floaters form many small rigid-looking groups).
+fn ransac_for(config: &DynamicConfig, points: usize) -> RansacConfig {
+    let mut c = config.ransac.clone();
+    c.min_inliers = c.min_inliers.max((MIN_PART_FRACTION * points as f64).ceil() as usize);
+    c
+}
+
+/// Stage III on trajectories of points (`traj[k][i]`: point i at time sample k, t = 0
+/// first; `index[i]` is point i's index in the caller's set): sequential RANSAC (or
+/// K-means with `kmeans_parts`), groups that do not move dropped, a joint per group.
+/// Returns the parts (members as the caller's indices) and the unexplained points.
+pub(crate) fn parts_from_trajectories(
+    config: &DynamicConfig,
+    traj: &[Vec<DVec3>],
+    index: &[usize],
+) -> (Vec<PartEstimate>, Vec<usize>) {
+    if index.len() < 3 {
+        return (Vec::new(), index.to_vec());
+    }
+    let cfg = ransac_for(config, index.len());
+    let trajectories = Trajectories { positions: traj };
+    let (groups, rest) = if config.kmeans_parts > 0 {
+        (kmeans_rigid_parts(&trajectories, config.kmeans_parts, cfg.seed), Vec::new())
+    } else {
+        segment_rigid_parts(&trajectories, &cfg)
+    };
+    let rest = rest.into_iter().map(|i| index[i]).collect();
+    let parts = groups
+        .into_iter()
+        .filter_map(|g| {
+            let m = *g.motions.last()?;
+            let centroid = g.members.iter().map(|&i| traj[0][i]).sum::<DVec3>() / g.members.len() as f64;
+            let members: Vec<usize> = g.members.iter().map(|&i| index[i]).collect();
+            let joint = extract_joint(&m, centroid);
+            // A group that does not move is static content, not a part.
+            let static_like = m.angle() <= config.sdmd_max_rotation && m.t.length() <= config.sdmd_max_translation;
+            (!static_like).then_some(PartEstimate { members, joint, motion: m })
+        })
+        .collect();
+    (parts, rest)
 }
 
 impl DualTrainer {
@@ -639,14 +708,6 @@ impl DualTrainer {
         (traj, keep)
     }
 
-    /// RANSAC settings for this many candidate points: a part must hold at least
-    /// `MIN_PART_FRACTION` of them (floaters form many small rigid-looking groups).
-    fn ransac_for(&self, points: usize) -> RansacConfig {
-        let mut c = self.config.ransac.clone();
-        c.min_inliers = c.min_inliers.max((MIN_PART_FRACTION * points as f64).ceil() as usize);
-        c
-    }
-
     /// SDMD: rigid groups of the moving set that do not move are handed to the
     /// static set (at their t = 1 pose, where newly revealed content is seen).
     /// Returns how many Gaussians moved.
@@ -655,7 +716,7 @@ impl DualTrainer {
         if index.len() < self.config.ransac.min_inliers {
             return 0;
         }
-        let cfg = self.ransac_for(index.len());
+        let cfg = ransac_for(&self.config, index.len());
         let (groups, _) = segment_rigid_parts(&Trajectories { positions: &traj }, &cfg);
         let mut drop = vec![false; self.moving.gaussians.len()];
         for g in &groups {
@@ -678,31 +739,7 @@ impl DualTrainer {
     /// Stage III on the moving set: rigid parts and their joints.
     pub fn analyse(&self) -> (Vec<PartEstimate>, Vec<usize>) {
         let (traj, index) = self.trajectories();
-        if index.len() < 3 {
-            return (Vec::new(), index);
-        }
-        let cfg = self.ransac_for(index.len());
-        let trajectories = Trajectories { positions: &traj };
-        let (groups, rest) = if self.config.kmeans_parts > 0 {
-            (kmeans_rigid_parts(&trajectories, self.config.kmeans_parts, cfg.seed), Vec::new())
-        } else {
-            segment_rigid_parts(&trajectories, &cfg)
-        };
-        let rest = rest.into_iter().map(|i| index[i]).collect();
-        let parts = groups
-            .into_iter()
-            .filter_map(|g| {
-                let m = *g.motions.last()?;
-                let centroid = g.members.iter().map(|&i| traj[0][i]).sum::<DVec3>() / g.members.len() as f64;
-                let members: Vec<usize> = g.members.iter().map(|&i| index[i]).collect();
-                let joint = extract_joint(&m, centroid);
-                // A group that does not move is static content, not a part.
-                let static_like =
-                    m.angle() <= self.config.sdmd_max_rotation && m.t.length() <= self.config.sdmd_max_translation;
-                (!static_like).then_some(PartEstimate { members, joint, motion: m })
-            })
-            .collect();
-        (parts, rest)
+        parts_from_trajectories(&self.config, &traj, &index)
     }
 
     /// Mean PSNR of `views` rendered at their times over the evaluation background.

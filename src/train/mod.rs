@@ -10,4 +10,5 @@ pub mod loss;
 pub mod optim;
 pub mod rigidity;
 pub mod static_stage;
+pub mod track;
 pub mod views;

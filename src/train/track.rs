@@ -1,0 +1,951 @@
+//! Stage II by time-ordered node tracking (the `cpu` preset's method; the
+//! measurements behind the choice are in docs/training.md).
+//!
+//! Every start-state Gaussian is bound to the nearest of a few hundred control
+//! nodes (farthest-point samples of the visible Gaussians); a node carries one
+//! rigid pose per motion frame, `x' = R (x - p) + p + T` about its centre `p`.
+//! Frames are fitted in time order: each frame's poses start from a
+//! constant-velocity extrapolation of the two frames before and are refined by
+//! Adam on that frame's photometric loss plus a robust as-rigid-as-possible
+//! term between neighbouring nodes. A rigid door is then many nodes carried by
+//! one motion: tracking a known shape, well posed even with one view per
+//! frame, and, frames being consumed as they come, the shape the live session
+//! needs. Stage III runs on the Gaussians' tracked trajectories; a part is a
+//! set of nodes.
+
+use std::num::NonZero;
+
+use glam::{DVec3, Quat, Vec3};
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::dynamic_stage::{parts_from_trajectories, DynamicConfig, PartEstimate};
+use crate::motion::{extract_joint, kabsch, Rigid};
+use super::loss::{loss_and_grad, psnr};
+use super::optim::{BETA1, BETA2};
+use super::static_stage::background_for;
+use super::views::TrainView;
+use crate::error::{Error, Result};
+use crate::render::{backward, render, RenderOptions};
+use crate::splat::GaussianSet;
+
+/// Settings of the node tracker.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackConfig {
+    /// Control nodes (farthest-point samples of the Gaussians at or above `min_opacity`).
+    pub nodes: usize,
+    /// Start-state Gaussians below this opacity are left out (floaters carry no motion evidence).
+    pub min_opacity: f32,
+    /// Adam step of the node translations per iteration, times the object size.
+    pub lr_translation: f32,
+    /// Adam step of the node rotations per iteration (radians).
+    pub lr_rotation: f32,
+    /// Weight of the as-rigid-as-possible term (mean over the node graph's edges).
+    pub arap_weight: f32,
+    /// Neighbours per node in the node graph.
+    pub arap_neighbours: usize,
+    /// Residual (times the median node spacing) at which the robust ARAP penalty
+    /// is half its maximum: edges across two parts break instead of holding them together.
+    pub arap_scale: f32,
+    /// Nodes are tracked freely until this time; then stage III finds the rigid
+    /// parts on their trajectories and the rest of the motion is fitted with one
+    /// rigid pose per part (thousands of Gaussians behind six numbers), which
+    /// follows a part through views where single nodes lose it (a door seen
+    /// edge-on, its never-seen inside showing). 1 = free tracking throughout.
+    pub discovery_time: f32,
+    /// Static-during-motion detection on nodes: from this many fitted segments on,
+    /// a node that has stayed within `freeze_translation` (times the object size)
+    /// and `freeze_rotation` (radians) of its start pose at every knot so far is
+    /// frozen at the start pose. Nothing then drags the static base along with
+    /// content the start state lacks, and the base costs nothing to fit.
+    pub freeze_after_segments: usize,
+    pub freeze_translation: f32,
+    pub freeze_rotation: f32,
+    /// Motion frames (evenly spread) on which merging parts is tested.
+    pub validation_frames: usize,
+    /// Relative loss increase within which a simpler set of parts is preferred.
+    pub merge_tolerance: f32,
+    /// The merge test's per-pixel residual cap: content the start state lacks
+    /// (a fridge's inside) costs the same whatever the parts do.
+    pub validation_residual_cap: f32,
+    /// Pose knots over the motion, evenly spaced in time (t = 0 is the start state).
+    /// Each knot is fitted on the frames of the two segments before it, so depth,
+    /// which one view hardly constrains, is seen from an arc of viewpoints.
+    pub knots: usize,
+    /// Trajectory samples stage III fits (evenly spaced in time, t = 0 first).
+    pub analysis_times: usize,
+}
+
+impl Default for TrackConfig {
+    fn default() -> Self {
+        Self {
+            nodes: 2048,
+            min_opacity: 0.05,
+            lr_translation: 1e-3,
+            lr_rotation: 2e-3,
+            arap_weight: 0.01,
+            arap_neighbours: 8,
+            arap_scale: 0.25,
+            analysis_times: 5,
+            knots: 31,
+            validation_frames: 12,
+            merge_tolerance: 0.01,
+            validation_residual_cap: 0.25,
+            discovery_time: 0.4,
+            freeze_after_segments: 6,
+            freeze_translation: 0.01,
+            freeze_rotation: 0.02,
+        }
+    }
+}
+
+impl TrackConfig {
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        if self.nodes < 2 {
+            return Err("track.nodes must be at least 2".into());
+        }
+        if self.arap_neighbours == 0 {
+            return Err("track.arap_neighbours must be at least 1".into());
+        }
+        if self.knots < 2 {
+            return Err("track.knots must be at least 2 (the start and the end of the motion)".into());
+        }
+        if self.analysis_times < 2 {
+            return Err("track.analysis_times must be at least 2 (t = 0 and t = 1)".into());
+        }
+        for (k, v) in [
+            ("track.lr_translation", self.lr_translation),
+            ("track.lr_rotation", self.lr_rotation),
+            ("track.arap_scale", self.arap_scale),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{k} must be a positive number, got {v}"));
+            }
+        }
+        if !(self.arap_weight.is_finite() && self.arap_weight >= 0.0) {
+            return Err(format!("track.arap_weight must be >= 0, got {}", self.arap_weight));
+        }
+        if !(self.discovery_time > 0.0 && self.discovery_time <= 1.0) {
+            return Err(format!("track.discovery_time must be in (0, 1], got {}", self.discovery_time));
+        }
+        if !(0.0..1.0).contains(&self.min_opacity) {
+            return Err(format!("track.min_opacity must be in [0, 1), got {}", self.min_opacity));
+        }
+        Ok(())
+    }
+}
+
+/// A node's rigid motion from the start state: `x' = R (x - p) + p + T`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NodePose {
+    pub rotation: Quat,
+    pub translation: Vec3,
+}
+
+impl NodePose {
+    pub const IDENTITY: Self = Self { rotation: Quat::IDENTITY, translation: Vec3::ZERO };
+
+    /// Constant-velocity extrapolation: `self` one step after `before`, one more step on.
+    fn extrapolate(&self, before: &Self) -> Self {
+        Self {
+            rotation: (self.rotation * before.rotation.inverse() * self.rotation).normalize(),
+            translation: 2.0 * self.translation - before.translation,
+        }
+    }
+
+    /// The pose a fraction `a` of the way from `self` to `next`.
+    fn lerp(&self, next: &Self, a: f32) -> Self {
+        Self { rotation: self.rotation.slerp(next.rotation, a), translation: self.translation.lerp(next.translation, a) }
+    }
+}
+
+/// What fitting one time segment did.
+#[derive(Clone, Copy, Debug)]
+pub struct SegmentFit {
+    /// Segments fitted so far (this one included).
+    pub segments_done: usize,
+    /// Photometric loss and PSNR, averaged over the segment's last tenth of iterations.
+    pub loss: f32,
+    pub psnr: f32,
+}
+
+/// The tracker's whole state (what a checkpoint holds).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct NodeTracker {
+    pub config: DynamicConfig,
+    /// The start-state Gaussians tracked (floaters removed).
+    pub gaussians: GaussianSet,
+    pub node_centres: Vec<Vec3>,
+    /// The node of each Gaussian.
+    pub binding: Vec<u32>,
+    /// Directed node-graph edges (k, j): j is among k's nearest nodes.
+    pub edges: Vec<(u32, u32)>,
+    /// Robust ARAP scale in world units.
+    pub arap_scale: f32,
+    /// Largest extent of the tracked Gaussians (world units): the scale of the
+    /// translation step and of the freezing threshold.
+    pub object_size: f32,
+    /// The node poses at the knot times `k / (knots - 1)`; knot 0 is the start
+    /// state (identity). Poses between knots are interpolated.
+    pub knots: Vec<Vec<NodePose>>,
+    /// Knots fitted so far besides the start state.
+    pub segments_done: usize,
+    /// Nodes found static during the motion, held at the start pose.
+    pub frozen: Vec<bool>,
+    /// Once the parts are found: each node's part and each part's pose per knot.
+    pub articulation: Option<TrackedParts>,
+    pub iterations_per_segment: u32,
+}
+
+/// The parts found at the end of free tracking, tracked rigidly from then on.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrackedParts {
+    /// Per node: 0 for the static base, p + 1 for part p.
+    pub node_part: Vec<usize>,
+    /// Each part's centroid at t = 0 (the centre its poses turn about).
+    pub centres: Vec<Vec3>,
+    /// Per knot, each part's pose about its centre.
+    pub poses: Vec<Vec<NodePose>>,
+}
+
+impl TrackedParts {
+    /// dL/d(part pose about its centre) from the node gradients (`part_poses` = the poses they were taken at).
+    fn part_gradient(&self, node_centres: &[Vec3], node_grad: &[f32], part_poses: &[NodePose]) -> Vec<f32> {
+        let mut grad = vec![0.0; 6 * self.centres.len()];
+        for (k, (&part, g)) in self.node_part.iter().zip(node_grad.chunks_exact(6)).enumerate() {
+            if part == 0 {
+                continue;
+            }
+            let (gr, gt) = (Vec3::new(g[0], g[1], g[2]), Vec3::new(g[3], g[4], g[5]));
+            // x = R (x0 - c) + c + T: turning about c moves node k's centre by d x R (p_k - c).
+            let lever = part_poses[part - 1].rotation * (node_centres[k] - self.centres[part - 1]);
+            let w = gr + lever.cross(gt);
+            let row = &mut grad[6 * (part - 1)..6 * part];
+            row[..3].iter_mut().zip(w.to_array()).for_each(|(a, b)| *a += b);
+            row[3..].iter_mut().zip(gt.to_array()).for_each(|(a, b)| *a += b);
+        }
+        grad
+    }
+
+    /// The node poses that carry every node of each part with its part's pose.
+    fn node_poses(&self, node_centres: &[Vec3], part_poses: &[NodePose]) -> Vec<NodePose> {
+        node_centres
+            .iter()
+            .zip(&self.node_part)
+            .map(|(&p, &part)| match part {
+                0 => NodePose::IDENTITY,
+                k => {
+                    let (c, g) = (self.centres[k - 1], part_poses[k - 1]);
+                    NodePose { rotation: g.rotation, translation: g.rotation * (p - c) + c + g.translation - p }
+                }
+            })
+            .collect()
+    }
+}
+
+/// Random streams: the training backgrounds and the frames drawn in a segment.
+const STREAM_BACKGROUND: u64 = 21;
+const STREAM_FRAMES: u64 = 22;
+
+impl NodeTracker {
+    /// Bind the start state to nodes.
+    pub fn new(config: DynamicConfig, start: &GaussianSet) -> Result<Self> {
+        let t = &config.track;
+        let keep: Vec<bool> = (0..start.len()).map(|i| start.opacity(i) >= t.min_opacity).collect();
+        let gaussians = start.subset(&keep);
+        if gaussians.len() < 3 {
+            return Err(Error::Config(format!(
+                "the start state has {} Gaussians at opacity >= {}: nothing to track",
+                gaussians.len(),
+                t.min_opacity
+            )));
+        }
+        let means: Vec<Vec3> = (0..gaussians.len()).map(|i| gaussians.mean(i)).collect();
+        let node_centres = farthest_points(&means, t.nodes.min(means.len()));
+        let tree: ImmutableKdTree<f32, 3> =
+            ImmutableKdTree::new_from_slice(&node_centres.iter().map(|c| c.to_array()).collect::<Vec<_>>());
+        let binding: Vec<u32> =
+            means.par_iter().map(|m| tree.nearest_one::<SquaredEuclidean>(&m.to_array()).item as u32).collect();
+        let k = (t.arap_neighbours + 1).min(node_centres.len());
+        let mut edges = Vec::new();
+        let mut spacing = Vec::new();
+        for (a, c) in node_centres.iter().enumerate() {
+            let nn = tree.nearest_n::<SquaredEuclidean>(&c.to_array(), NonZero::new(k).expect("k >= 2"));
+            for n in nn.iter().filter(|n| n.item as usize != a) {
+                edges.push((a as u32, n.item as u32));
+            }
+            if let Some(n) = nn.iter().find(|n| n.item as usize != a) {
+                spacing.push(n.distance.sqrt());
+            }
+        }
+        spacing.sort_by(f32::total_cmp);
+        let median_spacing = spacing.get(spacing.len() / 2).copied().unwrap_or(1.0).max(1e-6);
+        let size = crate::mesh::tsdf::object_size([&gaussians], t.min_opacity).unwrap_or(1.0);
+        let n = node_centres.len();
+        Ok(Self {
+            arap_scale: t.arap_scale * median_spacing,
+            object_size: size,
+            iterations_per_segment: (config.iterations / (t.knots as u32 - 1)).max(1),
+            knots: vec![vec![NodePose::IDENTITY; n]],
+            segments_done: 0,
+            frozen: vec![false; n],
+            articulation: None,
+            gaussians,
+            node_centres,
+            binding,
+            edges,
+            config,
+        })
+    }
+
+    /// Time segments to fit (one per knot after the start state).
+    pub fn segments(&self) -> usize {
+        self.config.track.knots - 1
+    }
+
+    fn knot_time(&self, k: usize) -> f32 {
+        k as f32 / self.segments() as f32
+    }
+
+    /// The Gaussians moved by `poses`.
+    pub fn deformed(&self, poses: &[NodePose]) -> GaussianSet {
+        let mut g = self.gaussians.clone();
+        let (centres, binding) = (&self.node_centres, &self.binding);
+        g.means.par_chunks_mut(3).zip(g.rotations.par_chunks_mut(4)).zip(binding.par_iter()).for_each(
+            |((m, r), &k)| {
+                let (p, pose) = (centres[k as usize], poses[k as usize]);
+                let x = pose.rotation * (Vec3::from_slice(m) - p) + p + pose.translation;
+                m.copy_from_slice(&x.to_array());
+                let q = pose.rotation * Quat::from_xyzw(r[1], r[2], r[3], r[0]);
+                r.copy_from_slice(&[q.w, q.x, q.y, q.z]);
+            },
+        );
+        g
+    }
+
+    /// The knot below time `t` among the fitted ones and the fraction of the way
+    /// to the next (0 at and beyond the last fitted knot).
+    fn bracket(&self, t: f32) -> (usize, f32) {
+        let last = self.knots.len() - 1;
+        let x = (t.clamp(0.0, 1.0) * self.segments() as f32).max(0.0);
+        let k = (x.floor() as usize).min(last);
+        if k == last {
+            (k, 0.0)
+        } else {
+            (k, x - k as f32)
+        }
+    }
+
+    /// The node poses at time `t` (interpolated between the fitted knots).
+    pub fn poses_at(&self, t: f32) -> Vec<NodePose> {
+        let (k, a) = self.bracket(t);
+        if a == 0.0 {
+            return self.knots[k].clone();
+        }
+        self.knots[k].iter().zip(&self.knots[k + 1]).map(|(p, q)| p.lerp(q, a)).collect()
+    }
+
+    /// Fit the next knot on the frames since the knot two before it: the new
+    /// knot starts from constant-velocity extrapolation of the last two, and the
+    /// new knot and the one before are refined together (earlier knots stay).
+    /// `frames` are the motion frames sorted by time.
+    pub fn fit_next(&mut self, frames: &[TrainView]) -> SegmentFit {
+        let j = self.knots.len();
+        let extrapolate = |k: &[Vec<NodePose>]| -> Vec<NodePose> {
+            match k.len() {
+                1 => k[0].clone(),
+                n => k[n - 1].iter().zip(&k[n - 2]).map(|(a, b)| a.extrapolate(b)).collect(),
+            }
+        };
+        let mut next = extrapolate(&self.knots);
+        for (p, _) in next.iter_mut().zip(&self.frozen).filter(|(_, f)| **f) {
+            *p = NodePose::IDENTITY;
+        }
+        if let Some(parts) = &mut self.articulation {
+            let part_next = extrapolate(&parts.poses);
+            next = parts.node_poses(&self.node_centres, &part_next);
+            parts.poses.push(part_next);
+        }
+        self.knots.push(next);
+        // Free nodes refine this knot and the one before on the frames of both
+        // segments; rigid parts, well constrained already, only this knot.
+        let articulated = self.articulation.is_some();
+        let free = if articulated { j } else { j.saturating_sub(1).max(1) };
+        let (t_lo, t_hi) = (self.knot_time(free.saturating_sub(1)), self.knot_time(j));
+        let window: Vec<&TrainView> =
+            frames.iter().filter(|v| v.time.is_some_and(|t| t >= t_lo - 1e-6 && t <= t_hi + 1e-6)).collect();
+        let groups = self.articulation.as_ref().map_or(self.node_centres.len(), |a| a.centres.len());
+        let mut optimizer = NodeOptimizer::new(groups * (j + 1 - free));
+        let c = self.config.clone();
+        let per_segment = self.iterations_per_segment;
+        let tail = (per_segment / 10).max(1);
+        let (mut loss, mut quality) = (0.0, 0.0);
+        for i in 0..per_segment {
+            // The window's end moves from the previous knot to this one over the first
+            // half of the segment, so the new knot is pulled out gradually: texture
+            // only guides a pose within about a pixel of the truth.
+            let grow = (2.0 * (i + 1) as f32 / per_segment as f32).min(1.0);
+            let t_end = self.knot_time(j - 1) + grow * (t_hi - self.knot_time(j - 1));
+            let open = window.partition_point(|v| v.time.is_some_and(|t| t <= t_end + 1e-6));
+            if open == 0 {
+                continue;
+            }
+            let it = self.segments_done as u32 * per_segment + i;
+            let mut rng = super::static_stage::rng_for(c.seed, STREAM_FRAMES, u64::from(it));
+            let view = window[rand::Rng::random_range(&mut rng, 0..open)];
+            let t = view.time.unwrap_or(0.0);
+            let bg = background_for(view, c.seed, it, c.random_background, c.eval_background, STREAM_BACKGROUND);
+            let poses = self.poses_at(t);
+            let g = self.deformed(&poses);
+            let r = render(&g, &view.camera, &RenderOptions { background: bg, sh_degree: None });
+            let target = view.target(bg);
+            let l = loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, c.lambda_dssim);
+            let grads = backward(&g, &r, &l.grad, None, None);
+            let mut at_t = self.photometric_node_gradient(&poses, &g, &grads.params);
+            self.add_arap(&poses, &mut at_t);
+            if let Some(parts) = &self.articulation {
+                at_t = parts.part_gradient(&self.node_centres, &at_t, &parts.poses[j]);
+            }
+            // The pose at t blends knots k and k + 1: each gets its share of the gradient.
+            let (k, a) = self.bracket(t);
+            let n6 = at_t.len();
+            let mut grad = vec![0.0; optimizer.nodes() * 6];
+            for (knot, share) in [(k, 1.0 - a), (k + 1, a)] {
+                if knot >= free && knot <= j && share > 0.0 {
+                    let row = (knot - free) * n6;
+                    grad[row..row + n6].iter_mut().zip(&at_t).for_each(|(g, v)| *g += share * v);
+                }
+            }
+            if !articulated {
+                for (k, _) in self.frozen.iter().enumerate().filter(|(_, f)| **f) {
+                    for row in grad.chunks_exact_mut(n6) {
+                        row[6 * k..6 * k + 6].fill(0.0);
+                    }
+                }
+            }
+            let step = optimizer.step(&grad, c.track.lr_rotation, c.track.lr_translation * self.object_size);
+            // Rotations are updated on the manifold, R <- exp(d) R.
+            let apply = |poses: &mut [NodePose], s: &[f32]| {
+                for (pose, s) in poses.iter_mut().zip(s.chunks_exact(6)) {
+                    pose.rotation = (Quat::from_scaled_axis(Vec3::new(s[0], s[1], s[2])) * pose.rotation).normalize();
+                    pose.translation += Vec3::new(s[3], s[4], s[5]);
+                }
+            };
+            if let Some(parts) = &mut self.articulation {
+                apply(&mut parts.poses[j], &step);
+                self.knots[j] = parts.node_poses(&self.node_centres, &parts.poses[j]);
+            } else {
+                for (knot, s) in (free..=j).zip(step.chunks_exact(n6)) {
+                    apply(&mut self.knots[knot], s);
+                }
+            }
+            if i >= per_segment - tail {
+                loss += l.loss / tail as f32;
+                quality += psnr(&r.image.color, &target) / tail as f32;
+            }
+        }
+        tracing::debug!(
+            segment = j,
+            time = t_hi,
+            loss,
+            psnr = quality,
+            frozen = self.frozen.iter().filter(|f| **f).count(),
+            "stage II: segment fitted"
+        );
+        self.segments_done += 1;
+        if !articulated && self.segments_done >= c.track.freeze_after_segments {
+            self.freeze_static_nodes();
+        }
+        if !articulated && self.knot_time(j) >= c.track.discovery_time - 1e-6 && j < self.segments() {
+            self.articulation = self.discover_parts();
+        }
+        SegmentFit { segments_done: self.segments_done, loss, psnr: quality }
+    }
+
+    /// dL/d(node rotation tangent, node translation) from the Gaussians' mean and
+    /// rotation gradients (`deformed` = the Gaussians at `poses`).
+    fn photometric_node_gradient(&self, poses: &[NodePose], deformed: &GaussianSet, g: &GaussianSet) -> Vec<f32> {
+        let mut grad = vec![0.0f32; 6 * poses.len()];
+        for (i, &k) in self.binding.iter().enumerate() {
+            let k = k as usize;
+            let gm = Vec3::from_slice(&g.means[3 * i..3 * i + 3]);
+            let h = &g.rotations[4 * i..4 * i + 4];
+            let q = &deformed.rotations[4 * i..4 * i + 4];
+            // Moving the mean: x' = exp(d) R (x - p) + ..., dx'/dd = -[R (x - p)]x.
+            let offset = Vec3::from_slice(&deformed.means[3 * i..3 * i + 3]) - self.node_centres[k] - poses[k].translation;
+            let mut w = offset.cross(gm);
+            // Turning the Gaussian: q' = exp(d) q, dq' = (0, d / 2) q.
+            let (qw, qv, hw, hv) = (q[0], Vec3::new(q[1], q[2], q[3]), h[0], Vec3::new(h[1], h[2], h[3]));
+            w += 0.5 * (qw * hv - hw * qv + qv.cross(hv));
+            let row = &mut grad[6 * k..6 * k + 6];
+            row[..3].iter_mut().zip(w.to_array()).for_each(|(a, b)| *a += b);
+            row[3..].iter_mut().zip(gm.to_array()).for_each(|(a, b)| *a += b);
+        }
+        grad
+    }
+
+    /// Add the robust ARAP term's gradient; returns its value. For an edge (k, j):
+    /// e = (x_j - x_k) - R_k (p_j - p_k), penalty rho(|e|^2) = |e|^2 / (|e|^2 + c^2).
+    fn add_arap(&self, poses: &[NodePose], grad: &mut [f32]) -> f32 {
+        let w = self.config.track.arap_weight / self.edges.len().max(1) as f32;
+        if w == 0.0 {
+            return 0.0;
+        }
+        let c2 = self.arap_scale * self.arap_scale;
+        let x = |k: usize| self.node_centres[k] + poses[k].translation;
+        let mut total = 0.0;
+        for &(k, j) in &self.edges {
+            let (k, j) = (k as usize, j as usize);
+            let v = poses[k].rotation * (self.node_centres[j] - self.node_centres[k]);
+            let e = x(j) - x(k) - v;
+            let s = e.length_squared();
+            total += w * s / (s + c2);
+            let ge = e * (2.0 * w * c2 / ((s + c2) * (s + c2)));
+            // de/dd_k = -(d x v): dL/dd_k = -(v x ge).
+            let gw = -v.cross(ge);
+            for a in 0..3 {
+                grad[6 * k + a] += gw[a];
+                grad[6 * j + 3 + a] += ge[a];
+                grad[6 * k + 3 + a] -= ge[a];
+            }
+        }
+        total
+    }
+
+    /// Freeze the nodes that have stayed near their start pose at every knot so far.
+    fn freeze_static_nodes(&mut self) {
+        let t = &self.config.track;
+        let max_t = t.freeze_translation * self.object_size;
+        for k in 0..self.frozen.len() {
+            if !self.frozen[k]
+                && self.knots.iter().all(|p| p[k].translation.length() <= max_t && p[k].rotation.angle_between(Quat::IDENTITY) <= t.freeze_rotation)
+            {
+                self.frozen[k] = true;
+                self.knots.iter_mut().for_each(|p| p[k] = NodePose::IDENTITY);
+            }
+        }
+    }
+
+    /// Whether node k stays put over the whole tracked motion (SDMD's test on nodes).
+    fn node_is_static(&self, k: usize) -> bool {
+        let c = &self.config;
+        self.knots.iter().all(|p| {
+            f64::from(p[k].rotation.angle_between(Quat::IDENTITY)) <= c.sdmd_max_rotation
+                && f64::from(p[k].translation.length()) <= c.sdmd_max_translation
+        })
+    }
+
+    /// Stage III on the tracked trajectories. Returns the parts (members index the
+    /// tracked Gaussians) and each Gaussian's label: 0 for the static base, k for part k.
+    pub fn analyse(&self) -> (Vec<PartEstimate>, Vec<usize>) {
+        let node_label = match &self.articulation {
+            Some(parts) => parts.node_part.clone(),
+            None => self.segment_nodes(1.0).1,
+        };
+        let parts_found = node_label.iter().copied().max().unwrap_or(0);
+        let last = self.knots.last().expect("the start state");
+        let mut labels: Vec<usize> = self.binding.iter().map(|&k| node_label[k as usize]).collect();
+        let mut parts = Vec::new();
+        for p in 1..=parts_found {
+            let members: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] == p).collect();
+            let nodes: Vec<usize> = (0..node_label.len()).filter(|&k| node_label[k] == p).collect();
+            if members.len() < 3 || nodes.is_empty() {
+                continue;
+            }
+            let src: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
+            let dst: Vec<DVec3> = nodes.iter().map(|&k| (self.node_centres[k] + last[k].translation).as_dvec3()).collect();
+            let motion = if nodes.len() >= 3 {
+                kabsch(&src, &dst)
+            } else {
+                let r = last[nodes[0]].rotation.as_dquat();
+                Rigid { r: glam::DMat3::from_quat(r), t: dst[0] - glam::DMat3::from_quat(r) * src[0] }
+            };
+            let c = &self.config;
+            if motion.angle() <= c.sdmd_max_rotation && motion.t.length() <= c.sdmd_max_translation {
+                members.iter().for_each(|&i| labels[i] = 0);
+                continue;
+            }
+            let centroid = members.iter().map(|&i| self.gaussians.mean(i).as_dvec3()).sum::<DVec3>() / members.len() as f64;
+            let label = parts.len() + 1;
+            members.iter().for_each(|&i| labels[i] = label);
+            parts.push(PartEstimate { joint: extract_joint(&motion, centroid), motion, members });
+        }
+        (parts, labels)
+    }
+
+    /// Sequential RANSAC on the trajectories of the moving nodes' Gaussians from
+    /// t = 0 to `t_end`, with the static thresholds scaled by `t_end` (the part of
+    /// the motion seen so far). Returns the groups and each node's label (0 = static).
+    fn segment_nodes(&self, t_end: f32) -> (Vec<PartEstimate>, Vec<usize>) {
+        let n_nodes = self.node_centres.len();
+        let moving_node: Vec<bool> = (0..n_nodes).map(|k| !self.frozen[k] && !self.node_is_static(k)).collect();
+        let index: Vec<usize> = (0..self.gaussians.len())
+            .filter(|&i| moving_node[self.binding[i] as usize] && self.gaussians.opacity(i) >= 0.1)
+            .collect();
+        let a = self.config.track.analysis_times;
+        let traj: Vec<Vec<DVec3>> = (0..a)
+            .map(|s| {
+                let poses = self.poses_at(t_end * s as f32 / (a - 1) as f32);
+                index
+                    .iter()
+                    .map(|&i| {
+                        let k = self.binding[i] as usize;
+                        let p = self.node_centres[k];
+                        (poses[k].rotation * (self.gaussians.mean(i) - p) + p + poses[k].translation).as_dvec3()
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut config = self.config.clone();
+        config.sdmd_max_rotation *= f64::from(t_end);
+        config.sdmd_max_translation *= f64::from(t_end);
+        let (found, _) = parts_from_trajectories(&config, &traj, &index);
+        // A node takes the part most of its analysed Gaussians joined; moving nodes
+        // that joined none take their nearest labelled node's part (leftovers to
+        // the nearest part, as the official code does), static nodes are the base.
+        let mut votes = vec![vec![0usize; found.len() + 1]; n_nodes];
+        for (p, part) in found.iter().enumerate() {
+            for &i in &part.members {
+                votes[self.binding[i] as usize][p + 1] += 1;
+            }
+        }
+        let mut node_label: Vec<Option<usize>> = votes
+            .iter()
+            .enumerate()
+            .map(|(k, v)| {
+                if !moving_node[k] {
+                    return Some(0);
+                }
+                let (best, &count) = v.iter().enumerate().skip(1).max_by_key(|(_, c)| **c)?;
+                (count > 0).then_some(best)
+            })
+            .collect();
+        let labelled: Vec<usize> = (0..n_nodes).filter(|&k| node_label[k].is_some_and(|l| l > 0)).collect();
+        for k in 0..n_nodes {
+            if node_label[k].is_none() {
+                let c = self.node_centres[k];
+                let nearest = labelled.iter().min_by(|&&a, &&b| {
+                    c.distance_squared(self.node_centres[a]).total_cmp(&c.distance_squared(self.node_centres[b]))
+                });
+                node_label[k] = Some(nearest.map_or(0, |&a| node_label[a].unwrap_or(0)));
+            }
+        }
+        (found, node_label.into_iter().map(|l| l.unwrap_or(0)).collect())
+    }
+
+    /// The parts on the free trajectories so far, with each part's pose at every
+    /// knot (a rigid fit to its nodes); None when nothing moves yet.
+    fn discover_parts(&self) -> Option<TrackedParts> {
+        let t_end = self.knot_time(self.knots.len() - 1);
+        let (found, node_part) = self.segment_nodes(t_end);
+        if found.is_empty() {
+            return None;
+        }
+        let centres: Vec<Vec3> = (1..=found.len())
+            .map(|p| {
+                let members: Vec<usize> = (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == p).collect();
+                members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32
+            })
+            .collect();
+        let poses = self
+            .knots
+            .iter()
+            .map(|knot| {
+                (1..=found.len())
+                    .map(|p| {
+                        let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
+                        let src: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
+                        let dst: Vec<DVec3> = nodes.iter().map(|&k| (self.node_centres[k] + knot[k].translation).as_dvec3()).collect();
+                        if nodes.len() < 3 {
+                            return NodePose::IDENTITY;
+                        }
+                        let m = kabsch(&src, &dst);
+                        let c = centres[p - 1];
+                        let rotation = glam::DQuat::from_mat3(&m.r).as_quat().normalize();
+                        NodePose { rotation, translation: m.apply_f32(c) - c }
+                    })
+                    .collect()
+            })
+            .collect();
+        tracing::info!(parts = found.len(), time = t_end, "stage II: parts found on the tracked nodes; tracking them rigidly from here");
+        Some(TrackedParts { node_part, centres, poses })
+    }
+
+    /// Occam's test on the parts found: a part whose nodes, given to another part's
+    /// motion or to the static base, explain the motion video as well (robust
+    /// photometric loss within `track.merge_tolerance`, relative) is merged there.
+    /// One door split into two groups, or a static shelf that drifted with the
+    /// door, thus becomes one part, whatever their motions' parameters. Returns
+    /// how many parts were merged away.
+    pub fn merge_redundant_parts(&mut self, frames: &[TrainView]) -> usize {
+        let Some(parts) = self.articulation.clone() else {
+            return 0;
+        };
+        let n = self.config.track.validation_frames.min(frames.len());
+        if n == 0 {
+            return 0;
+        }
+        let check: Vec<&TrainView> = (0..n).map(|i| &frames[(i * (frames.len() - 1)) / (n - 1).max(1)]).collect();
+        let mut node_part = parts.node_part.clone();
+        let mut current = self.articulated_loss(&parts, &node_part, &check);
+        let mut merged = 0;
+        let size = |np: &[usize], p: usize| np.iter().zip(&self.binding_counts()).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>();
+        let mut order: Vec<usize> = (1..=parts.centres.len()).collect();
+        order.sort_by_key(|&p| size(&node_part, p));
+        for q in order {
+            let best = (0..=parts.centres.len())
+                .filter(|&p| p != q && (p == 0 || size(&node_part, p) > 0))
+                .map(|p| {
+                    let trial: Vec<usize> = node_part.iter().map(|&l| if l == q { p } else { l }).collect();
+                    let loss = self.articulated_loss(&parts, &trial, &check);
+                    (p, trial, loss)
+                })
+                .min_by(|a, b| a.2.total_cmp(&b.2));
+            if let Some((p, trial, loss)) = best {
+                if loss <= current * (1.0 + self.config.track.merge_tolerance) {
+                    tracing::info!(part = q, into = p, loss, before = current, "stage III: merged a part that explains nothing the other does not");
+                    node_part = trial;
+                    current = loss;
+                    merged += 1;
+                }
+            }
+        }
+        // Renumber the parts that are left.
+        let kept: Vec<usize> = (1..=parts.centres.len()).filter(|&p| node_part.contains(&p)).collect();
+        let renumber = |l: usize| kept.iter().position(|&k| k == l).map_or(0, |i| i + 1);
+        let articulation = TrackedParts {
+            node_part: node_part.iter().map(|&l| renumber(l)).collect(),
+            centres: kept.iter().map(|&p| parts.centres[p - 1]).collect(),
+            poses: parts.poses.iter().map(|k| kept.iter().map(|&p| k[p - 1]).collect()).collect(),
+        };
+        for (k, knot) in self.knots.iter_mut().enumerate().skip(1) {
+            if let Some(poses) = articulation.poses.get(k) {
+                *knot = articulation.node_poses(&self.node_centres, poses);
+            }
+        }
+        self.articulation = Some(articulation);
+        merged
+    }
+
+    /// Gaussians per node.
+    fn binding_counts(&self) -> Vec<usize> {
+        let mut c = vec![0; self.node_centres.len()];
+        self.binding.iter().for_each(|&k| c[k as usize] += 1);
+        c
+    }
+
+    /// Mean robust photometric loss of `views` with the nodes assigned to parts by `node_part`.
+    fn articulated_loss(&self, parts: &TrackedParts, node_part: &[usize], views: &[&TrainView]) -> f32 {
+        let assigned = TrackedParts { node_part: node_part.to_vec(), ..parts.clone() };
+        let bg = Vec3::from(self.config.eval_background);
+        let cap = self.config.track.validation_residual_cap;
+        let total: f32 = views
+            .iter()
+            .map(|v| {
+                let (k, a) = self.bracket(v.time.unwrap_or(0.0));
+                let at: Vec<NodePose> = match parts.poses.get(k + 1) {
+                    Some(next) if a > 0.0 => parts.poses[k].iter().zip(next).map(|(p, q)| p.lerp(q, a)).collect(),
+                    _ => parts.poses[k.min(parts.poses.len() - 1)].clone(),
+                };
+                let g = self.deformed(&assigned.node_poses(&self.node_centres, &at));
+                let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+                let target = v.target(bg);
+                let sum: f32 = r
+                    .image
+                    .color
+                    .chunks_exact(3)
+                    .zip(target.chunks_exact(3))
+                    .map(|(x, y)| ((0..3).map(|c| (x[c] - y[c]).abs()).sum::<f32>() / 3.0).min(cap))
+                    .sum();
+                sum / (r.width * r.height) as f32
+            })
+            .sum();
+        total / views.len().max(1) as f32
+    }
+
+    /// Mean PSNR of `views` rendered at the tracked state nearest their times, over
+    /// the evaluation background.
+    pub fn evaluate(&self, views: &[TrainView]) -> f32 {
+        let bg = Vec3::from(self.config.eval_background);
+        let sum: f32 = views
+            .iter()
+            .map(|v| {
+                let g = self.deformed(&self.poses_at(v.time.unwrap_or(0.0)));
+                let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+                psnr(&r.image.color, &v.target(bg))
+            })
+            .sum();
+        sum / views.len().max(1) as f32
+    }
+}
+
+/// Adam with one second moment per parameter kind (rotation, translation) over all
+/// nodes instead of one per parameter. Per-parameter Adam gives every node the same
+/// step size however weak its evidence, and a node seen at the edge of one frame
+/// then random-walks; with the moment shared, a node moves in proportion to its
+/// gradient, at most `MAX_STEP` times the step size.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct NodeOptimizer {
+    m: Vec<f32>,
+    v: [f32; 2],
+    steps: u32,
+}
+
+const MAX_STEP: f32 = 3.0;
+
+impl NodeOptimizer {
+    fn new(nodes: usize) -> Self {
+        Self { m: vec![0.0; 6 * nodes], v: [0.0; 2], steps: 0 }
+    }
+
+    pub(crate) fn nodes(&self) -> usize {
+        self.m.len() / 6
+    }
+
+    /// The parameter change for gradient `grad` (rotation tangents get `lr_rotation`, translations `lr_translation`).
+    fn step(&mut self, grad: &[f32], lr_rotation: f32, lr_translation: f32) -> Vec<f32> {
+        self.steps += 1;
+        let t = self.steps as i32;
+        let n = self.nodes().max(1) as f32;
+        for (kind, v) in self.v.iter_mut().enumerate() {
+            let mean_sq: f32 = grad.chunks_exact(6).map(|g| g[3 * kind..3 * kind + 3].iter().map(|x| x * x).sum::<f32>()).sum::<f32>() / (3.0 * n);
+            *v = BETA2 * *v + (1.0 - BETA2) * mean_sq;
+        }
+        let (bc1, bc2) = (1.0 - BETA1.powi(t), 1.0 - BETA2.powi(t));
+        self.m.iter_mut().zip(grad).enumerate().map(|(i, (m, &g))| {
+            *m = BETA1 * *m + (1.0 - BETA1) * g;
+            let kind = (i % 6) / 3;
+            let lr = if kind == 0 { lr_rotation } else { lr_translation };
+            let rms = (self.v[kind] / bc2).sqrt();
+            if rms > 0.0 { -lr * (*m / bc1 / rms).clamp(-MAX_STEP, MAX_STEP) } else { 0.0 }
+        }).collect()
+    }
+}
+
+/// `n` farthest-point samples of `points` (deterministic: starts from the point
+/// nearest the centroid).
+fn farthest_points(points: &[Vec3], n: usize) -> Vec<Vec3> {
+    let centroid = points.iter().copied().sum::<Vec3>() / points.len() as f32;
+    let first = (0..points.len())
+        .min_by(|&a, &b| points[a].distance_squared(centroid).total_cmp(&points[b].distance_squared(centroid)))
+        .unwrap_or(0);
+    let mut chosen = vec![points[first]];
+    let mut dist: Vec<f32> = points.iter().map(|p| p.distance_squared(points[first])).collect();
+    while chosen.len() < n {
+        let (far, _) = dist.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("points");
+        let c = points[far];
+        chosen.push(c);
+        dist.par_iter_mut().zip(points.par_iter()).for_each(|(d, p)| *d = d.min(p.distance_squared(c)));
+    }
+    chosen
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Mat4;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+    use crate::camera::{Camera, Intrinsics};
+    use crate::splat::logit;
+
+    /// A few large, overlapping Gaussians in front of a small camera, bound to two
+    /// nodes (smooth under small perturbations, as the rasterizer's own tests use).
+    fn scene() -> (NodeTracker, Camera) {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut gs = GaussianSet::new(0);
+        for _ in 0..6 {
+            let mean = Vec3::new(rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1), rng.random_range(-0.3..0.3));
+            let q = [rng.random_range(0.5..1.0), rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.3];
+            let dc = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+            let ls = Vec3::new(rng.random_range(-0.25..-0.05), rng.random_range(-0.25..-0.05), -0.15);
+            gs.push(mean, ls, q, logit(rng.random_range(0.25..0.5)), dc, &[]);
+        }
+        let mut config = DynamicConfig::cpu();
+        config.track.nodes = 2;
+        let tracker = NodeTracker::new(config, &gs).expect("tracker");
+        let k = Intrinsics { width: 16, height: 14, fx: 14.0, fy: 15.0, cx: 8.3, cy: 6.6 };
+        let cam = Camera::look_at(k, Vec3::new(0.3, -0.2, -3.0), Vec3::ZERO, Vec3::new(0.1, -1.0, 0.0));
+        (tracker, cam)
+    }
+
+    fn poses(rng: &mut ChaCha8Rng, n: usize) -> Vec<NodePose> {
+        (0..n)
+            .map(|_| NodePose {
+                rotation: Quat::from_scaled_axis(Vec3::new(0.2, -0.1, 0.15) * rng.random_range(0.5..1.5)),
+                translation: Vec3::new(rng.random_range(-0.05..0.05), 0.02, rng.random_range(-0.05..0.05)),
+            })
+            .collect()
+    }
+
+    /// `poses` with node k's parameter a (0-2 rotation tangent, 3-5 translation) moved by `eps`.
+    fn perturbed(poses: &[NodePose], k: usize, a: usize, eps: f32) -> Vec<NodePose> {
+        let mut p = poses.to_vec();
+        let mut d = Vec3::ZERO;
+        d[a % 3] = eps;
+        if a < 3 {
+            p[k].rotation = Quat::from_scaled_axis(d) * p[k].rotation;
+        } else {
+            p[k].translation += d;
+        }
+        p
+    }
+
+    #[test]
+    fn node_gradient_matches_finite_differences() {
+        let (tracker, cam) = scene();
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let poses = poses(&mut rng, tracker.node_centres.len());
+        let w: Vec<f32> = (0..3 * 16 * 14).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let opts = RenderOptions { background: Vec3::new(0.2, 0.3, 0.1), sh_degree: None };
+        let loss = |p: &[NodePose]| -> f64 {
+            let r = render(&tracker.deformed(p), &cam, &opts);
+            r.image.color.iter().zip(&w).map(|(c, w)| f64::from(c * w)).sum()
+        };
+        let g = tracker.deformed(&poses);
+        let r = render(&g, &cam, &opts);
+        assert_eq!(r.visible_count(), 6, "every Gaussian should be visible");
+        let grads = backward(&g, &r, &w, None, None);
+        let analytic = tracker.photometric_node_gradient(&poses, &g, &grads.params);
+        let eps = 1e-3;
+        for k in 0..poses.len() {
+            for a in 0..6 {
+                let fd = (loss(&perturbed(&poses, k, a, eps)) - loss(&perturbed(&poses, k, a, -eps))) / (2.0 * f64::from(eps));
+                let an = f64::from(analytic[6 * k + a]);
+                assert!((fd - an).abs() <= 2e-2 * fd.abs().max(1.0), "node {k} parameter {a}: analytic {an}, finite difference {fd}");
+            }
+        }
+    }
+
+    #[test]
+    fn arap_gradient_matches_finite_differences() {
+        let (mut tracker, _) = scene();
+        tracker.arap_scale = 0.05;
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let poses = poses(&mut rng, tracker.node_centres.len());
+        let mut analytic = vec![0.0; 6 * poses.len()];
+        let value = tracker.add_arap(&poses, &mut analytic);
+        assert!(value > 0.0, "non-rigid poses cost something");
+        let eps = 1e-3;
+        for k in 0..poses.len() {
+            for a in 0..6 {
+                let f = |e| f64::from(tracker.add_arap(&perturbed(&poses, k, a, e), &mut vec![0.0; analytic.len()]));
+                let fd = (f(eps) - f(-eps)) / (2.0 * f64::from(eps));
+                let an = f64::from(analytic[6 * k + a]);
+                assert!((fd - an).abs() <= 1e-2 * fd.abs().max(1e-2), "node {k} parameter {a}: analytic {an}, finite difference {fd}");
+            }
+        }
+        // One rigid motion for every node costs nothing.
+        let rigid = NodePose { rotation: Quat::from_rotation_z(0.7), translation: Vec3::ZERO };
+        let c = tracker.node_centres.iter().copied().sum::<Vec3>() / tracker.node_centres.len() as f32;
+        let same: Vec<NodePose> = tracker
+            .node_centres
+            .iter()
+            .map(|&p| NodePose { translation: rigid.rotation * (p - c) + c - p, ..rigid })
+            .collect();
+        assert!(tracker.add_arap(&same, &mut vec![0.0; analytic.len()]) < 1e-9);
+    }
+}
