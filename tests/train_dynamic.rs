@@ -59,12 +59,12 @@ fn train_dynamic_runs_from_a_stage_one_result_and_writes_its_outputs() {
         .expect("rerun CLI runs");
     assert!(print.status.success(), "{}", String::from_utf8_lossy(&print.stderr));
     let listing = String::from_utf8_lossy(&print.stdout);
-    for entity in ["/stage2/psnr", "/stage2/static", "/stage2/moving/t1"] {
+    for entity in ["/stage2/psnr", "/stage2/tracked/t0", "/stage2/tracked/t1"] {
         assert!(listing.contains(entity), "{entity} missing from the recording");
     }
     let stdout = String::from_utf8_lossy(&dy.stdout);
     assert!(stdout.contains("motion test PSNR") && stdout.contains("moving part(s) found"), "{stdout}");
-    for f in ["moving.ply", "static_pruned.ply", "deform.bin", "checkpoint.bin", "twin/object.urdf"] {
+    for f in ["moving.ply", "static_pruned.ply", "track.bin", "checkpoint.bin", "twin/object.urdf"] {
         assert!(root.join("d").join(f).exists(), "missing {f}");
     }
     let twin = root.join("d").join("twin");
@@ -98,4 +98,70 @@ fn train_dynamic_runs_from_a_stage_one_result_and_writes_its_outputs() {
         .output()
         .expect("runs");
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("missing.ply"));
+}
+
+#[test]
+fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+
+    use aim::mesh::tsdf::TsdfConfig;
+    use aim::train::config::StageConfig;
+    use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl};
+    use aim::train::dynamic_stage::DynamicConfig;
+
+    let root = tmp("resume");
+    let data = root.join("data");
+    let cfg = SynthConfig {
+        resolution: 32,
+        scan_views: 6,
+        motion_frames: 12,
+        end_views: 1,
+        test_views: 1,
+        motion_test_every: 6,
+        samples_per_pixel: 1,
+        ..Default::default()
+    };
+    write_dataset(&aim::synth::object("storage").expect("object"), &data, &cfg, &|_, _| {}).expect("written");
+    let st =
+        aim().arg("train-static").arg(&data).arg("--out").arg(root.join("s")).args(["--iterations", "30"]).output();
+    assert!(st.expect("runs").status.success());
+    let static_ply = root.join("s").join("static.ply");
+    let dyn_cfg = DynamicConfig::resolve(None, "cpu", Some(0), Some(60)).expect("config");
+    let viz = aim::viz::Viz::disabled();
+    let mesh = TsdfConfig { max_voxels_per_axis: 24, views: 8, ..TsdfConfig::default() };
+    let never = AtomicBool::new(false);
+    let run = |out: &str, control: &RunControl, stop_after: Option<u32>| {
+        run_dynamic(&data, &static_ply, &root.join(out), dyn_cfg.clone(), &mesh, control, |s| {
+            if stop_after.is_some_and(|k| s.iteration >= k) {
+                control.interrupt.store(true, Ordering::SeqCst);
+            }
+        })
+        .expect("stage II runs")
+    };
+    let full = run("full", &RunControl { resume: false, interrupt: &never, viz: &viz }, None);
+    assert!(matches!(full, DynamicOutcome::Finished { .. }));
+    let stop = AtomicBool::new(false);
+    let first = run("cut", &RunControl { resume: false, interrupt: &stop, viz: &viz }, Some(20));
+    assert!(matches!(first, DynamicOutcome::Interrupted(it) if it < 60), "the run stops early");
+    let go_on = AtomicBool::new(false);
+    let second = run("cut", &RunControl { resume: true, interrupt: &go_on, viz: &viz }, None);
+    assert!(matches!(second, DynamicOutcome::Finished { .. }));
+    let a = std::fs::read(root.join("full").join("track.bin")).expect("track");
+    let b = std::fs::read(root.join("cut").join("track.bin")).expect("track");
+    assert_eq!(a, b, "a resumed run must repeat the uninterrupted one exactly");
+    // Resuming with another configuration is refused, naming the checkpoint.
+    let mut other = dyn_cfg.clone();
+    other.track.nodes += 1;
+    let err = run_dynamic(
+        &data,
+        &static_ply,
+        &root.join("cut"),
+        other,
+        &mesh,
+        &RunControl { resume: true, interrupt: &never, viz: &viz },
+        |_| {},
+    )
+    .err()
+    .expect("refused");
+    assert!(err.to_string().contains("checkpoint.bin"), "{err}");
 }

@@ -1,7 +1,7 @@
 //! `aim demo [--object fridge] [--out out/demo]`: the built-in end-to-end job on
 //! a synthetic object with exact ground truth: generate the benchmark dataset,
-//! train the start-state 3DGS (stage I), then the dual Gaussians on the motion
-//! video (stage II) and find the parts and joints (stage III), printing the
+//! train the start-state 3DGS (stage I), then track it through the motion video
+//! (stage II) and find the parts and joints (stage III), printing the
 //! joints and their errors against the ground truth. All at the cpu presets.
 
 use std::path::PathBuf;
@@ -30,10 +30,39 @@ pub struct Args {
     pub rerun: super::train_static::RerunArgs,
 }
 
+/// Wall time of each demo stage in units of this machine's rasterizer bench (one
+/// forward + backward of 50k Gaussians at 256 px, in ms), measured on the fridge
+/// (docs/benchmark.md): seconds = factor x bench ms.
+const PLAN: [(&str, f64); 4] = [
+    ("synthetic dataset", SYNTH_S_PER_BENCH_MS),
+    ("stage I", STAGE1_S_PER_BENCH_MS),
+    ("stages II and III", STAGE2_S_PER_BENCH_MS),
+    ("twin meshes", MESH_S_PER_BENCH_MS),
+];
+const SYNTH_S_PER_BENCH_MS: f64 = 0.0;
+const STAGE1_S_PER_BENCH_MS: f64 = 0.0;
+const STAGE2_S_PER_BENCH_MS: f64 = 0.0;
+const MESH_S_PER_BENCH_MS: f64 = 0.0;
+
+/// Print the plan with an estimate per stage from a quick measure of this machine.
+fn print_plan() {
+    let scene = aim::bench::random_scene(50_000, 7);
+    let bench_ms = aim::bench::time_render(&scene, &aim::bench::bench_camera(256), 3).forward_backward_ms;
+    let total: f64 = PLAN.iter().map(|(_, f)| f * bench_ms).sum();
+    println!(
+        "plan (this machine renders the 256 px / 50k bench in {bench_ms:.0} ms): about {:.0} min in all",
+        total / 60.0
+    );
+    for (stage, f) in PLAN {
+        println!("    {stage}: ~{:.0} s", f * bench_ms);
+    }
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
     let object = objects::object(&args.object)?;
     let data = args.out.join("data");
     let cfg = SynthConfig { seed: args.seed, ..Default::default() };
+    print_plan();
     println!("1/3 synthetic {} ({} parts) -> {}", args.object, object.parts.len(), data.display());
     let bar = ProgressBar::new(0);
     bar.set_style(ProgressStyle::with_template("{bar:30} {pos}/{len} views [{elapsed_precise}]").expect("template"));
@@ -82,7 +111,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut dyn_cfg = DynamicConfig::cpu();
     dyn_cfg.seed = args.seed;
     println!(
-        "3/3 stages II and III (dual Gaussians on the motion video, then parts and joints; preset cpu, {} iterations)",
+        "3/3 stages II and III (the start state tracked through the motion video, then parts and joints; preset cpu, {} iterations)",
         dyn_cfg.iterations
     );
     let static_ply = args.out.join("static").join("static.ply");

@@ -13,10 +13,10 @@ use super::dynamic_stage::{
     load_checkpoint, save_checkpoint, DualTrainer, DynamicConfig, DynamicStep, PartEstimate, StageTwoMethod,
     StageTwoViews,
 };
-use super::track::NodeTracker;
-use super::views::TrainView;
 use super::static_stage::peak_rss_mib;
+use super::track::NodeTracker;
 use super::views::load_phase_views;
+use super::views::TrainView;
 use crate::error::{write_atomic, Error, Result};
 use crate::eval::{match_joints, ArticulationReport, PredictedJoint};
 use crate::export::{write_twin, TwinPart};
@@ -257,7 +257,11 @@ fn run_node_track(
             sdmd_moved: 0,
         };
         log_step(control.viz, &step);
-        if tracker.knots.last().is_some_and(|p| p.iter().any(|p| !(p.translation.is_finite() && p.rotation.is_finite()))) {
+        if tracker
+            .knots
+            .last()
+            .is_some_and(|p| p.iter().any(|p| !(p.translation.is_finite() && p.rotation.is_finite())))
+        {
             return Err(Error::Other(format!("stage II tracking diverged in segment {}", fit.segments_done)));
         }
         // One segment is a few seconds of work: checkpoint after each.

@@ -21,12 +21,12 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::dynamic_stage::{parts_from_trajectories, DynamicConfig, PartEstimate};
-use crate::motion::{extract_joint, kabsch, Rigid};
 use super::loss::{loss_and_grad, psnr};
 use super::optim::{BETA1, BETA2};
 use super::static_stage::background_for;
 use super::views::TrainView;
 use crate::error::{Error, Result};
+use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::GaussianSet;
 
@@ -157,7 +157,10 @@ impl NodePose {
 
     /// The pose a fraction `a` of the way from `self` to `next`.
     fn lerp(&self, next: &Self, a: f32) -> Self {
-        Self { rotation: self.rotation.slerp(next.rotation, a), translation: self.translation.lerp(next.translation, a) }
+        Self {
+            rotation: self.rotation.slerp(next.rotation, a),
+            translation: self.translation.lerp(next.translation, a),
+        }
     }
 }
 
@@ -474,7 +477,8 @@ impl NodeTracker {
             let h = &g.rotations[4 * i..4 * i + 4];
             let q = &deformed.rotations[4 * i..4 * i + 4];
             // Moving the mean: x' = exp(d) R (x - p) + ..., dx'/dd = -[R (x - p)]x.
-            let offset = Vec3::from_slice(&deformed.means[3 * i..3 * i + 3]) - self.node_centres[k] - poses[k].translation;
+            let offset =
+                Vec3::from_slice(&deformed.means[3 * i..3 * i + 3]) - self.node_centres[k] - poses[k].translation;
             let mut w = offset.cross(gm);
             // Turning the Gaussian: q' = exp(d) q, dq' = (0, d / 2) q.
             let (qw, qv, hw, hv) = (q[0], Vec3::new(q[1], q[2], q[3]), h[0], Vec3::new(h[1], h[2], h[3]));
@@ -520,7 +524,10 @@ impl NodeTracker {
         let max_t = t.freeze_translation * self.object_size;
         for k in 0..self.frozen.len() {
             if !self.frozen[k]
-                && self.knots.iter().all(|p| p[k].translation.length() <= max_t && p[k].rotation.angle_between(Quat::IDENTITY) <= t.freeze_rotation)
+                && self.knots.iter().all(|p| {
+                    p[k].translation.length() <= max_t
+                        && p[k].rotation.angle_between(Quat::IDENTITY) <= t.freeze_rotation
+                })
             {
                 self.frozen[k] = true;
                 self.knots.iter_mut().for_each(|p| p[k] = NodePose::IDENTITY);
@@ -555,7 +562,8 @@ impl NodeTracker {
                 continue;
             }
             let src: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
-            let dst: Vec<DVec3> = nodes.iter().map(|&k| (self.node_centres[k] + last[k].translation).as_dvec3()).collect();
+            let dst: Vec<DVec3> =
+                nodes.iter().map(|&k| (self.node_centres[k] + last[k].translation).as_dvec3()).collect();
             let motion = if nodes.len() >= 3 {
                 kabsch(&src, &dst)
             } else {
@@ -567,7 +575,8 @@ impl NodeTracker {
                 members.iter().for_each(|&i| labels[i] = 0);
                 continue;
             }
-            let centroid = members.iter().map(|&i| self.gaussians.mean(i).as_dvec3()).sum::<DVec3>() / members.len() as f64;
+            let centroid =
+                members.iter().map(|&i| self.gaussians.mean(i).as_dvec3()).sum::<DVec3>() / members.len() as f64;
             let label = parts.len() + 1;
             members.iter().for_each(|&i| labels[i] = label);
             parts.push(PartEstimate { joint: extract_joint(&motion, centroid), motion, members });
@@ -602,6 +611,7 @@ impl NodeTracker {
         config.sdmd_max_rotation *= f64::from(t_end);
         config.sdmd_max_translation *= f64::from(t_end);
         let (found, _) = parts_from_trajectories(&config, &traj, &index);
+        let found = self.merge_same_motion(found);
         // A node takes the part most of its analysed Gaussians joined; moving nodes
         // that joined none take their nearest labelled node's part (leftovers to
         // the nearest part, as the official code does), static nodes are the base.
@@ -635,6 +645,54 @@ impl NodeTracker {
         (found, node_label.into_iter().map(|l| l.unwrap_or(0)).collect())
     }
 
+    /// Merge groups that move the same way, as the official code's
+    /// `search_and_merge`: same joint type, axes within `MERGE_AXIS_ANGLE`, and
+    /// for revolute joints axis lines within half the median part radius and
+    /// angles within `MERGE_AXIS_ANGLE`; for prismatic ones amounts within 20 %.
+    /// Free tracking splits one door into pieces whose trajectories differ by more
+    /// than RANSAC's threshold but whose joints agree.
+    fn merge_same_motion(&self, mut found: Vec<PartEstimate>) -> Vec<PartEstimate> {
+        const MERGE_AXIS_ANGLE: f64 = 0.2;
+        let radius = |p: &PartEstimate| {
+            let pts: Vec<DVec3> = p.members.iter().map(|&i| self.gaussians.mean(i).as_dvec3()).collect();
+            let c = pts.iter().copied().sum::<DVec3>() / pts.len().max(1) as f64;
+            pts.iter().map(|x| x.distance(c)).sum::<f64>() / pts.len().max(1) as f64
+        };
+        loop {
+            let mut radii: Vec<f64> = found.iter().map(radius).collect();
+            radii.sort_by(f64::total_cmp);
+            let median_radius = radii.get(radii.len() / 2).copied().unwrap_or(0.0);
+            let same = |a: &PartEstimate, b: &PartEstimate| {
+                let (ja, jb) = (&a.joint, &b.joint);
+                if ja.kind != jb.kind || ja.axis.dot(jb.axis) < MERGE_AXIS_ANGLE.cos() {
+                    return false;
+                }
+                match ja.kind {
+                    crate::motion::JointKind::Revolute => {
+                        let line_gap = 0.5
+                            * ((jb.origin - ja.origin).cross(ja.axis).length()
+                                + (ja.origin - jb.origin).cross(jb.axis).length());
+                        line_gap < 0.5 * median_radius && (ja.amount - jb.amount).abs() < MERGE_AXIS_ANGLE
+                    }
+                    crate::motion::JointKind::Prismatic => {
+                        (ja.amount - jb.amount).abs() < 0.2 * ja.amount.max(jb.amount)
+                    }
+                }
+            };
+            let pair = (0..found.len())
+                .flat_map(|a| (a + 1..found.len()).map(move |b| (a, b)))
+                .find(|&(a, b)| same(&found[a], &found[b]));
+            let Some((a, b)) = pair else {
+                return found;
+            };
+            // The larger group's motion stands for both.
+            let (keep, gone) = if found[a].members.len() >= found[b].members.len() { (a, b) } else { (b, a) };
+            let moved = std::mem::take(&mut found[gone].members);
+            found[keep].members.extend(moved);
+            found.remove(gone);
+        }
+    }
+
     /// The parts on the free trajectories so far, with each part's pose at every
     /// knot (a rigid fit to its nodes); None when nothing moves yet.
     fn discover_parts(&self) -> Option<TrackedParts> {
@@ -645,7 +703,8 @@ impl NodeTracker {
         }
         let centres: Vec<Vec3> = (1..=found.len())
             .map(|p| {
-                let members: Vec<usize> = (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == p).collect();
+                let members: Vec<usize> =
+                    (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == p).collect();
                 members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32
             })
             .collect();
@@ -657,7 +716,8 @@ impl NodeTracker {
                     .map(|p| {
                         let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
                         let src: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
-                        let dst: Vec<DVec3> = nodes.iter().map(|&k| (self.node_centres[k] + knot[k].translation).as_dvec3()).collect();
+                        let dst: Vec<DVec3> =
+                            nodes.iter().map(|&k| (self.node_centres[k] + knot[k].translation).as_dvec3()).collect();
                         if nodes.len() < 3 {
                             return NodePose::IDENTITY;
                         }
@@ -669,7 +729,11 @@ impl NodeTracker {
                     .collect()
             })
             .collect();
-        tracing::info!(parts = found.len(), time = t_end, "stage II: parts found on the tracked nodes; tracking them rigidly from here");
+        tracing::info!(
+            parts = found.len(),
+            time = t_end,
+            "stage II: parts found on the tracked nodes; tracking them rigidly from here"
+        );
         Some(TrackedParts { node_part, centres, poses })
     }
 
@@ -691,7 +755,9 @@ impl NodeTracker {
         let mut node_part = parts.node_part.clone();
         let mut current = self.articulated_loss(&parts, &node_part, &check);
         let mut merged = 0;
-        let size = |np: &[usize], p: usize| np.iter().zip(&self.binding_counts()).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>();
+        let size = |np: &[usize], p: usize| {
+            np.iter().zip(&self.binding_counts()).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>()
+        };
         let mut order: Vec<usize> = (1..=parts.centres.len()).collect();
         order.sort_by_key(|&p| size(&node_part, p));
         for q in order {
@@ -705,7 +771,13 @@ impl NodeTracker {
                 .min_by(|a, b| a.2.total_cmp(&b.2));
             if let Some((p, trial, loss)) = best {
                 if loss <= current * (1.0 + self.config.track.merge_tolerance) {
-                    tracing::info!(part = q, into = p, loss, before = current, "stage III: merged a part that explains nothing the other does not");
+                    tracing::info!(
+                        part = q,
+                        into = p,
+                        loss,
+                        before = current,
+                        "stage III: merged a part that explains nothing the other does not"
+                    );
                     node_part = trial;
                     current = loss;
                     merged += 1;
@@ -810,17 +882,28 @@ impl NodeOptimizer {
         let t = self.steps as i32;
         let n = self.nodes().max(1) as f32;
         for (kind, v) in self.v.iter_mut().enumerate() {
-            let mean_sq: f32 = grad.chunks_exact(6).map(|g| g[3 * kind..3 * kind + 3].iter().map(|x| x * x).sum::<f32>()).sum::<f32>() / (3.0 * n);
+            let mean_sq: f32 =
+                grad.chunks_exact(6).map(|g| g[3 * kind..3 * kind + 3].iter().map(|x| x * x).sum::<f32>()).sum::<f32>()
+                    / (3.0 * n);
             *v = BETA2 * *v + (1.0 - BETA2) * mean_sq;
         }
         let (bc1, bc2) = (1.0 - BETA1.powi(t), 1.0 - BETA2.powi(t));
-        self.m.iter_mut().zip(grad).enumerate().map(|(i, (m, &g))| {
-            *m = BETA1 * *m + (1.0 - BETA1) * g;
-            let kind = (i % 6) / 3;
-            let lr = if kind == 0 { lr_rotation } else { lr_translation };
-            let rms = (self.v[kind] / bc2).sqrt();
-            if rms > 0.0 { -lr * (*m / bc1 / rms).clamp(-MAX_STEP, MAX_STEP) } else { 0.0 }
-        }).collect()
+        self.m
+            .iter_mut()
+            .zip(grad)
+            .enumerate()
+            .map(|(i, (m, &g))| {
+                *m = BETA1 * *m + (1.0 - BETA1) * g;
+                let kind = (i % 6) / 3;
+                let lr = if kind == 0 { lr_rotation } else { lr_translation };
+                let rms = (self.v[kind] / bc2).sqrt();
+                if rms > 0.0 {
+                    -lr * (*m / bc1 / rms).clamp(-MAX_STEP, MAX_STEP)
+                } else {
+                    0.0
+                }
+            })
+            .collect()
     }
 }
 
@@ -844,7 +927,6 @@ fn farthest_points(points: &[Vec3], n: usize) -> Vec<Vec3> {
 
 #[cfg(test)]
 mod tests {
-    use glam::Mat4;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -913,9 +995,13 @@ mod tests {
         let eps = 1e-3;
         for k in 0..poses.len() {
             for a in 0..6 {
-                let fd = (loss(&perturbed(&poses, k, a, eps)) - loss(&perturbed(&poses, k, a, -eps))) / (2.0 * f64::from(eps));
+                let fd = (loss(&perturbed(&poses, k, a, eps)) - loss(&perturbed(&poses, k, a, -eps)))
+                    / (2.0 * f64::from(eps));
                 let an = f64::from(analytic[6 * k + a]);
-                assert!((fd - an).abs() <= 2e-2 * fd.abs().max(1.0), "node {k} parameter {a}: analytic {an}, finite difference {fd}");
+                assert!(
+                    (fd - an).abs() <= 2e-2 * fd.abs().max(1.0),
+                    "node {k} parameter {a}: analytic {an}, finite difference {fd}"
+                );
             }
         }
     }
@@ -935,7 +1021,10 @@ mod tests {
                 let f = |e| f64::from(tracker.add_arap(&perturbed(&poses, k, a, e), &mut vec![0.0; analytic.len()]));
                 let fd = (f(eps) - f(-eps)) / (2.0 * f64::from(eps));
                 let an = f64::from(analytic[6 * k + a]);
-                assert!((fd - an).abs() <= 1e-2 * fd.abs().max(1e-2), "node {k} parameter {a}: analytic {an}, finite difference {fd}");
+                assert!(
+                    (fd - an).abs() <= 1e-2 * fd.abs().max(1e-2),
+                    "node {k} parameter {a}: analytic {an}, finite difference {fd}"
+                );
             }
         }
         // One rigid motion for every node costs nothing.
