@@ -34,8 +34,12 @@ use crate::splat::GaussianSet;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackConfig {
-    /// Control nodes (farthest-point samples of the Gaussians at or above `min_opacity`).
+    /// Control nodes (farthest-point samples of the Gaussians at or above `min_opacity`) ...
     pub nodes: usize,
+    /// ... but no more than one per this many Gaussians: a node's pose is only as
+    /// good as the evidence of its Gaussians (a flat 7k-Gaussian pair of scissors
+    /// gets ~600 nodes, the 25k-Gaussian fridge 2048).
+    pub gaussians_per_node: usize,
     /// Start-state Gaussians below this opacity are left out (floaters carry no motion evidence).
     pub min_opacity: f32,
     /// Adam step of the node translations per iteration, times the object size.
@@ -82,6 +86,7 @@ impl Default for TrackConfig {
     fn default() -> Self {
         Self {
             nodes: 2048,
+            gaussians_per_node: 12,
             min_opacity: 0.05,
             lr_translation: 1e-3,
             lr_rotation: 2e-3,
@@ -105,6 +110,9 @@ impl TrackConfig {
     pub fn validate(&self) -> std::result::Result<(), String> {
         if self.nodes < 2 {
             return Err("track.nodes must be at least 2".into());
+        }
+        if self.gaussians_per_node == 0 {
+            return Err("track.gaussians_per_node must be at least 1".into());
         }
         if self.arap_neighbours == 0 {
             return Err("track.arap_neighbours must be at least 1".into());
@@ -266,7 +274,8 @@ impl NodeTracker {
             )));
         }
         let means: Vec<Vec3> = (0..gaussians.len()).map(|i| gaussians.mean(i)).collect();
-        let node_centres = farthest_points(&means, t.nodes.min(means.len()));
+        let node_count = t.nodes.min(means.len() / t.gaussians_per_node.max(1)).max(2);
+        let node_centres = farthest_points(&means, node_count.min(means.len()));
         let tree: ImmutableKdTree<f32, 3> =
             ImmutableKdTree::new_from_slice(&node_centres.iter().map(|c| c.to_array()).collect::<Vec<_>>());
         let binding: Vec<u32> =
@@ -463,6 +472,8 @@ impl NodeTracker {
         }
         if !articulated && self.knot_time(j) >= c.track.discovery_time - 1e-6 && j < self.segments() {
             self.articulation = self.discover_parts();
+            // Fragments of one part are merged before each is tracked on its own.
+            self.merge_redundant_parts(frames);
         }
         SegmentFit { segments_done: self.segments_done, loss, psnr: quality }
     }
@@ -738,7 +749,7 @@ impl NodeTracker {
     }
 
     /// Occam's test on the parts found: a part whose nodes, given to another part's
-    /// motion or to the static base, explain the motion video as well (robust
+    /// motion or to the static base, explain the motion video so far as well (robust
     /// photometric loss within `track.merge_tolerance`, relative) is merged there.
     /// One door split into two groups, or a static shelf that drifted with the
     /// door, thus becomes one part, whatever their motions' parameters. Returns
@@ -747,11 +758,14 @@ impl NodeTracker {
         let Some(parts) = self.articulation.clone() else {
             return 0;
         };
-        let n = self.config.track.validation_frames.min(frames.len());
+        // The frames up to the last fitted knot (all of them once the motion is fitted).
+        let t_end = self.knot_time(self.knots.len() - 1);
+        let seen: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t <= t_end + 1e-6)).collect();
+        let n = self.config.track.validation_frames.min(seen.len());
         if n == 0 {
             return 0;
         }
-        let check: Vec<&TrainView> = (0..n).map(|i| &frames[(i * (frames.len() - 1)) / (n - 1).max(1)]).collect();
+        let check: Vec<&TrainView> = (0..n).map(|i| seen[(i * (seen.len() - 1)) / (n - 1).max(1)]).collect();
         let mut node_part = parts.node_part.clone();
         let mut current = self.articulated_loss(&parts, &node_part, &check);
         let mut merged = 0;
@@ -948,6 +962,7 @@ mod tests {
         }
         let mut config = DynamicConfig::cpu();
         config.track.nodes = 2;
+        config.track.gaussians_per_node = 1;
         let tracker = NodeTracker::new(config, &gs).expect("tracker");
         let k = Intrinsics { width: 16, height: 14, fx: 14.0, fy: 15.0, cx: 8.3, cy: 6.6 };
         let cam = Camera::look_at(k, Vec3::new(0.3, -0.2, -3.0), Vec3::ZERO, Vec3::new(0.1, -1.0, 0.0));
