@@ -220,6 +220,9 @@ fn run_node_track(
     mut progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
     let out = run.out;
+    if frames.is_empty() {
+        return Err(Error::bad_file(run.dataset.join("motion"), "no motion frames to track"));
+    }
     if frames.iter().any(|v| v.time.is_none()) {
         return Err(Error::Config("every motion view needs a time".into()));
     }

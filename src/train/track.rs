@@ -37,8 +37,8 @@ pub struct TrackConfig {
     /// Control nodes (farthest-point samples of the Gaussians at or above `min_opacity`) ...
     pub nodes: usize,
     /// ... but no more than one per this many Gaussians: a node's pose is only as
-    /// good as the evidence of its Gaussians (a flat 7k-Gaussian pair of scissors
-    /// gets ~600 nodes, the 25k-Gaussian fridge 2048).
+    /// good as the evidence of its Gaussians (the flat 7k-Gaussian objects get fewer
+    /// nodes than the 2048 of the larger ones).
     pub gaussians_per_node: usize,
     /// Start-state Gaussians below this opacity are left out (floaters carry no motion evidence).
     pub min_opacity: f32,
@@ -86,7 +86,7 @@ impl Default for TrackConfig {
     fn default() -> Self {
         Self {
             nodes: 2048,
-            gaussians_per_node: 12,
+            gaussians_per_node: 4,
             min_opacity: 0.05,
             lr_translation: 1e-3,
             lr_rotation: 2e-3,
@@ -472,8 +472,6 @@ impl NodeTracker {
         }
         if !articulated && self.knot_time(j) >= c.track.discovery_time - 1e-6 && j < self.segments() {
             self.articulation = self.discover_parts();
-            // Fragments of one part are merged before each is tracked on its own.
-            self.merge_redundant_parts(frames);
         }
         SegmentFit { segments_done: self.segments_done, loss, psnr: quality }
     }
