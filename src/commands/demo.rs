@@ -32,17 +32,18 @@ pub struct Args {
 
 /// Wall time of each demo stage in units of this machine's rasterizer bench (one
 /// forward + backward of 50k Gaussians at 256 px, in ms), measured on the fridge
-/// (docs/benchmark.md): seconds = factor x bench ms.
+/// (docs/benchmark.md, 2026-12-01: 7 / 63 / 79 / 14 s at a bench of ~58 ms):
+/// seconds = factor x bench ms.
 const PLAN: [(&str, f64); 4] = [
     ("synthetic dataset", SYNTH_S_PER_BENCH_MS),
     ("stage I", STAGE1_S_PER_BENCH_MS),
     ("stages II and III", STAGE2_S_PER_BENCH_MS),
     ("twin meshes", MESH_S_PER_BENCH_MS),
 ];
-const SYNTH_S_PER_BENCH_MS: f64 = 0.0;
-const STAGE1_S_PER_BENCH_MS: f64 = 0.0;
-const STAGE2_S_PER_BENCH_MS: f64 = 0.0;
-const MESH_S_PER_BENCH_MS: f64 = 0.0;
+const SYNTH_S_PER_BENCH_MS: f64 = 0.12;
+const STAGE1_S_PER_BENCH_MS: f64 = 1.08;
+const STAGE2_S_PER_BENCH_MS: f64 = 1.36;
+const MESH_S_PER_BENCH_MS: f64 = 0.24;
 
 /// Print the plan with an estimate per stage from a quick measure of this machine.
 fn print_plan() {
@@ -50,7 +51,7 @@ fn print_plan() {
     let bench_ms = aim::bench::time_render(&scene, &aim::bench::bench_camera(256), 3).forward_backward_ms;
     let total: f64 = PLAN.iter().map(|(_, f)| f * bench_ms).sum();
     println!(
-        "plan (this machine renders the 256 px / 50k bench in {bench_ms:.0} ms): about {:.0} min in all",
+        "plan (this machine renders the 256 px / 50k bench in {bench_ms:.0} ms): about {:.1} min in all",
         total / 60.0
     );
     for (stage, f) in PLAN {
