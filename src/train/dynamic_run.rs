@@ -1,4 +1,5 @@
-//! The stage II + III run loop: train the dual Gaussians on a dataset's motion
+//! The stage II + III run loop of both methods (node tracking, the cpu preset;
+//! the dual field, the paper preset): learn the motion on a dataset's motion
 //! video (checkpointing, resuming, interrupt, rerun logging), then find the
 //! parts and joints, write the outputs and the twin, and with ground truth
 //! match the joints. Batch commands, the benchmark suite and tests call this.
@@ -10,8 +11,8 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use super::dynamic_stage::{
-    load_checkpoint, save_checkpoint, DualTrainer, DynamicConfig, DynamicStep, PartEstimate, StageTwoMethod,
-    StageTwoViews,
+    load_checkpoint, require_times, save_checkpoint, DualTrainer, DynamicConfig, DynamicStep, PartEstimate,
+    StageTwoMethod, StageTwoViews,
 };
 use super::static_stage::peak_rss_mib;
 use super::track::NodeTracker;
@@ -31,8 +32,8 @@ pub struct RunControl<'a> {
     pub resume: bool,
     /// Raised (Ctrl-C) to checkpoint and stop.
     pub interrupt: &'a AtomicBool,
-    /// Rerun log: scalars every 10 iterations; the static set and the moving set
-    /// at t = 0, 0.5, 1 at every checkpoint; the parts at the end.
+    /// Rerun log: scalars (every 10 iterations, or every tracked segment); the
+    /// sets at t = 0, 0.5, 1 at every checkpoint; the parts at the end.
     pub viz: &'a Viz,
 }
 
@@ -223,9 +224,7 @@ fn run_node_track(
     if frames.is_empty() {
         return Err(Error::bad_file(run.dataset.join("motion"), "no motion frames to track"));
     }
-    if frames.iter().any(|v| v.time.is_none()) {
-        return Err(Error::Config("every motion view needs a time".into()));
-    }
+    require_times(&frames)?;
     let time = |v: &TrainView| v.time.unwrap_or(0.0);
     if frames.windows(2).any(|w| time(&w[1]) < time(&w[0])) {
         tracing::warn!("the motion frames are not in time order; fitting them sorted by time");

@@ -327,13 +327,19 @@ impl StageTwoViews {
         if motion.is_empty() {
             return Err(Error::Config("no motion views".into()));
         }
-        if motion.iter().any(|v| v.time.is_none()) {
-            return Err(Error::Config("every motion view needs a time".into()));
-        }
+        require_times(&motion)?;
         start.iter_mut().for_each(|v| v.time = Some(0.0));
         end.iter_mut().for_each(|v| v.time = Some(1.0));
         Ok(Self { motion, start, end })
     }
+}
+
+/// Every motion view must carry its time in the motion.
+pub(crate) fn require_times(motion: &[TrainView]) -> Result<()> {
+    if motion.iter().any(|v| v.time.is_none()) {
+        return Err(Error::Config("every motion view needs a time".into()));
+    }
+    Ok(())
 }
 
 /// Both sets, the deformation network and their optimizers: the whole state of

@@ -1,17 +1,17 @@
 //! Stage II by time-ordered node tracking (the `cpu` preset's method; the
 //! measurements behind the choice are in docs/training.md).
 //!
-//! Every start-state Gaussian is bound to the nearest of a few hundred control
+//! Every start-state Gaussian is bound to the nearest of up to 2048 control
 //! nodes (farthest-point samples of the visible Gaussians); a node carries one
-//! rigid pose per motion frame, `x' = R (x - p) + p + T` about its centre `p`.
-//! Frames are fitted in time order: each frame's poses start from a
-//! constant-velocity extrapolation of the two frames before and are refined by
-//! Adam on that frame's photometric loss plus a robust as-rigid-as-possible
-//! term between neighbouring nodes. A rigid door is then many nodes carried by
-//! one motion: tracking a known shape, well posed even with one view per
-//! frame, and, frames being consumed as they come, the shape the live session
-//! needs. Stage III runs on the Gaussians' tracked trajectories; a part is a
-//! set of nodes.
+//! rigid pose per knot, `x' = R (x - p) + p + T` about its centre `p`, and poses
+//! between knots are interpolated. Knots are fitted in time order: each starts
+//! from a constant-velocity extrapolation of the two before and is refined with
+//! the one before on the frames of both segments (photometric loss, a weak
+//! robust as-rigid-as-possible term between neighbouring nodes). Nodes that stay
+//! put are frozen at the start pose (SDMD on nodes). At `discovery_time` stage
+//! III groups the moving nodes into rigid parts, and from then on each part is
+//! fitted as one rigid pose; at the end, parts that explain the video no better
+//! than another part's motion or the base are merged. A part is a set of nodes.
 
 use std::num::NonZero;
 
@@ -155,6 +155,11 @@ pub struct NodePose {
 impl NodePose {
     pub const IDENTITY: Self = Self { rotation: Quat::IDENTITY, translation: Vec3::ZERO };
 
+    /// Where the pose about centre `p` moves point `x`.
+    fn apply(&self, p: Vec3, x: Vec3) -> Vec3 {
+        self.rotation * (x - p) + p + self.translation
+    }
+
     /// Constant-velocity extrapolation: `self` one step after `before`, one more step on.
     fn extrapolate(&self, before: &Self) -> Self {
         Self {
@@ -249,7 +254,7 @@ impl TrackedParts {
                 0 => NodePose::IDENTITY,
                 k => {
                     let (c, g) = (self.centres[k - 1], part_poses[k - 1]);
-                    NodePose { rotation: g.rotation, translation: g.rotation * (p - c) + c + g.translation - p }
+                    NodePose { rotation: g.rotation, translation: g.apply(c, p) - p }
                 }
             })
             .collect()
@@ -328,8 +333,7 @@ impl NodeTracker {
         g.means.par_chunks_mut(3).zip(g.rotations.par_chunks_mut(4)).zip(binding.par_iter()).for_each(
             |((m, r), &k)| {
                 let (p, pose) = (centres[k as usize], poses[k as usize]);
-                let x = pose.rotation * (Vec3::from_slice(m) - p) + p + pose.translation;
-                m.copy_from_slice(&x.to_array());
+                m.copy_from_slice(&pose.apply(p, Vec3::from_slice(m)).to_array());
                 let q = pose.rotation * Quat::from_xyzw(r[1], r[2], r[3], r[0]);
                 r.copy_from_slice(&[q.w, q.x, q.y, q.z]);
             },
@@ -341,7 +345,7 @@ impl NodeTracker {
     /// to the next (0 at and beyond the last fitted knot).
     fn bracket(&self, t: f32) -> (usize, f32) {
         let last = self.knots.len() - 1;
-        let x = (t.clamp(0.0, 1.0) * self.segments() as f32).max(0.0);
+        let x = t.clamp(0.0, 1.0) * self.segments() as f32;
         let k = (x.floor() as usize).min(last);
         if k == last {
             (k, 0.0)
@@ -352,11 +356,16 @@ impl NodeTracker {
 
     /// The node poses at time `t` (interpolated between the fitted knots).
     pub fn poses_at(&self, t: f32) -> Vec<NodePose> {
+        self.interpolated(&self.knots, t)
+    }
+
+    /// Poses at time `t` from per-knot poses `knots` (node or part poses, one entry per fitted knot).
+    fn interpolated(&self, knots: &[Vec<NodePose>], t: f32) -> Vec<NodePose> {
         let (k, a) = self.bracket(t);
-        if a == 0.0 {
-            return self.knots[k].clone();
+        match knots.get(k + 1) {
+            Some(next) if a > 0.0 => knots[k].iter().zip(next).map(|(p, q)| p.lerp(q, a)).collect(),
+            _ => knots[k].clone(),
         }
-        self.knots[k].iter().zip(&self.knots[k + 1]).map(|(p, q)| p.lerp(q, a)).collect()
     }
 
     /// Fit the next knot on the frames since the knot two before it: the new
@@ -570,15 +579,12 @@ impl NodeTracker {
             if members.len() < 3 || nodes.is_empty() {
                 continue;
             }
-            let src: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
-            let dst: Vec<DVec3> =
-                nodes.iter().map(|&k| (self.node_centres[k] + last[k].translation).as_dvec3()).collect();
-            let motion = if nodes.len() >= 3 {
-                kabsch(&src, &dst)
-            } else {
-                let r = last[nodes[0]].rotation.as_dquat();
-                Rigid { r: glam::DMat3::from_quat(r), t: dst[0] - glam::DMat3::from_quat(r) * src[0] }
-            };
+            let motion = self.nodes_rigid_fit(&nodes, last).unwrap_or_else(|| {
+                // One or two nodes: the first node's own pose, in world form.
+                let (p, pose) = (self.node_centres[nodes[0]], last[nodes[0]]);
+                let r = glam::DMat3::from_quat(pose.rotation.as_dquat());
+                Rigid { r, t: pose.apply(p, p).as_dvec3() - r * p.as_dvec3() }
+            });
             let c = &self.config;
             if motion.angle() <= c.sdmd_max_rotation && motion.t.length() <= c.sdmd_max_translation {
                 members.iter().for_each(|&i| labels[i] = 0);
@@ -610,8 +616,7 @@ impl NodeTracker {
                     .iter()
                     .map(|&i| {
                         let k = self.binding[i] as usize;
-                        let p = self.node_centres[k];
-                        (poses[k].rotation * (self.gaussians.mean(i) - p) + p + poses[k].translation).as_dvec3()
+                        poses[k].apply(self.node_centres[k], self.gaussians.mean(i)).as_dvec3()
                     })
                     .collect()
             })
@@ -702,6 +707,17 @@ impl NodeTracker {
         }
     }
 
+    /// The rigid motion (world form) that best carries the centres of `nodes` to
+    /// where `knot` puts them; None for fewer than three nodes.
+    fn nodes_rigid_fit(&self, nodes: &[usize], knot: &[NodePose]) -> Option<Rigid> {
+        if nodes.len() < 3 {
+            return None;
+        }
+        let src: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
+        let dst: Vec<DVec3> = nodes.iter().map(|&k| (self.node_centres[k] + knot[k].translation).as_dvec3()).collect();
+        Some(kabsch(&src, &dst))
+    }
+
     /// The parts on the free trajectories so far, with each part's pose at every
     /// knot (a rigid fit to its nodes); None when nothing moves yet.
     fn discover_parts(&self) -> Option<TrackedParts> {
@@ -724,13 +740,9 @@ impl NodeTracker {
                 (1..=found.len())
                     .map(|p| {
                         let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
-                        let src: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
-                        let dst: Vec<DVec3> =
-                            nodes.iter().map(|&k| (self.node_centres[k] + knot[k].translation).as_dvec3()).collect();
-                        if nodes.len() < 3 {
+                        let Some(m) = self.nodes_rigid_fit(&nodes, knot) else {
                             return NodePose::IDENTITY;
-                        }
-                        let m = kabsch(&src, &dst);
+                        };
                         let c = centres[p - 1];
                         let rotation = glam::DQuat::from_mat3(&m.r).as_quat().normalize();
                         NodePose { rotation, translation: m.apply_f32(c) - c }
@@ -767,9 +779,9 @@ impl NodeTracker {
         let mut node_part = parts.node_part.clone();
         let mut current = self.articulated_loss(&parts, &node_part, &check);
         let mut merged = 0;
-        let size = |np: &[usize], p: usize| {
-            np.iter().zip(&self.binding_counts()).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>()
-        };
+        let counts = self.binding_counts();
+        let size =
+            |np: &[usize], p: usize| np.iter().zip(&counts).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>();
         let mut order: Vec<usize> = (1..=parts.centres.len()).collect();
         order.sort_by_key(|&p| size(&node_part, p));
         for q in order {
@@ -828,11 +840,7 @@ impl NodeTracker {
         let total: f32 = views
             .iter()
             .map(|v| {
-                let (k, a) = self.bracket(v.time.unwrap_or(0.0));
-                let at: Vec<NodePose> = match parts.poses.get(k + 1) {
-                    Some(next) if a > 0.0 => parts.poses[k].iter().zip(next).map(|(p, q)| p.lerp(q, a)).collect(),
-                    _ => parts.poses[k.min(parts.poses.len() - 1)].clone(),
-                };
+                let at = self.interpolated(&parts.poses, v.time.unwrap_or(0.0));
                 let g = self.deformed(&assigned.node_poses(&self.node_centres, &at));
                 let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
                 let target = v.target(bg);
