@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use crate::motion::{JointEstimate, JointKind};
 
 pub mod shape;
+pub mod tracking;
 pub mod twin;
 
 /// Axis angle error in degrees, orientation-invariant: min(theta, 180 - theta).

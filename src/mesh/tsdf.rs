@@ -98,7 +98,7 @@ pub fn object_size<'a>(sets: impl IntoIterator<Item = &'a GaussianSet>, min_opac
 }
 
 /// Directions spread evenly over the sphere (Fibonacci lattice).
-fn sphere_directions(n: usize) -> Vec<Vec3> {
+pub(crate) fn sphere_directions(n: usize) -> Vec<Vec3> {
     let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
     (0..n)
         .map(|k| {

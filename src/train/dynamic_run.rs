@@ -19,6 +19,8 @@ use super::track::NodeTracker;
 use super::views::load_phase_views;
 use super::views::TrainView;
 use crate::error::{write_atomic, Error, Result};
+use crate::eval::tracking::{tracking_errors, TrackingError};
+use crate::eval::twin::GroundTruth;
 use crate::eval::{match_joints, ArticulationReport, PredictedJoint};
 use crate::export::{write_twin, TwinPart};
 use crate::mesh::tsdf::TsdfConfig;
@@ -63,6 +65,10 @@ pub struct DynamicMetrics {
     pub parts: Vec<PartSummary>,
     /// With ground truth (gt/joints.json): the matched joints' errors.
     pub gt_report: Option<ArticulationReport>,
+    /// With ground truth and node tracking: how far the tracked nodes are from
+    /// their true positions over the motion, per ground-truth part.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tracking_error: Option<Vec<TrackingError>>,
 }
 
 /// How a stage II run ended.
@@ -209,6 +215,7 @@ fn run_dual_field(
         motion_test_psnr,
         moving_gaussians: trainer.moving.gaussians.len(),
         wall_time_s: elapsed(&started),
+        tracking_error: None,
     };
     finish(run, control.viz, &trainer.static_set.gaussians, parts, &part_sets, summary)
 }
@@ -239,7 +246,14 @@ fn run_node_track(
         tracing::info!(segments = t.segments_done, "resuming from {}", checkpoint.display());
         (t, elapsed)
     } else {
-        (NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?)?, 0.0)
+        // The scan's cameras show where the start state's hidden volume is (for revealed content).
+        let wanted = cfg.track.revealed_gaussians > 0;
+        let scan: Vec<_> = if wanted && run.dataset.join("start").join("transforms_train.json").exists() {
+            load_phase_views(run.dataset, Phase::Scan, cfg.resolution)?.0.into_iter().map(|v| v.camera).collect()
+        } else {
+            Vec::new()
+        };
+        (NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?, &scan)?, 0.0)
     };
     let started = Instant::now();
     let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();
@@ -276,6 +290,7 @@ fn run_node_track(
     save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
     tracker.merge_redundant_parts(&frames);
     let motion_test_psnr = (!run.test.is_empty()).then(|| tracker.evaluate(run.test));
+    let tracking_error = node_tracking_error(run.dataset, &tracker)?;
     let (parts, labels) = tracker.analyse();
     let with_label = |l: usize| tracker.gaussians.subset(&labels.iter().map(|&x| x == l).collect::<Vec<_>>());
     let base = with_label(0);
@@ -283,6 +298,7 @@ fn run_node_track(
     let moving = tracker.gaussians.subset(&labels.iter().map(|&x| x > 0).collect::<Vec<_>>());
     crate::splat::ply::write_ply(&out.join("static_pruned.ply"), &base)?;
     crate::splat::ply::write_ply(&out.join("moving.ply"), &moving)?;
+    crate::splat::ply::write_ply(&out.join("revealed.ply"), &tracker.revealed.gaussians)?;
     let track = postcard::to_stdvec(&tracker.knots)
         .map_err(|e| Error::Other(format!("encoding the tracked node poses: {e}")))?;
     write_atomic(&out.join("track.bin"), &track)?;
@@ -300,8 +316,30 @@ fn run_node_track(
         motion_test_psnr,
         moving_gaussians: moving.len(),
         wall_time_s: elapsed(&started),
+        tracking_error,
     };
     finish(run, control.viz, &base, parts, &part_sets, summary)
+}
+
+/// With ground truth: the tracked nodes' distance from their true positions at
+/// tenths of the motion, per ground-truth part (also logged).
+fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<Option<Vec<TrackingError>>> {
+    if !dataset.join("gt").join("joints.json").exists() {
+        return Ok(None);
+    }
+    let gt = GroundTruth::load(dataset)?;
+    let at = |t: f32| tracker.poses_at(t).iter().zip(&tracker.node_centres).map(|(p, &c)| c + p.translation).collect();
+    let times: Vec<f32> = (1..=10).map(|k| k as f32 / 10.0).collect();
+    let errors = tracking_errors(&gt, &tracker.node_centres, at, &times, tracker.config.seed);
+    for e in &errors {
+        let parts: Vec<String> = e
+            .parts
+            .iter()
+            .map(|p| format!("part {} ({} nodes) median {:.3} p90 {:.3}", p.gt_part, p.points, p.median, p.p90))
+            .collect();
+        tracing::info!("tracking error at t = {:.1}: {}", e.time, parts.join("; "));
+    }
+    Ok(Some(errors))
 }
 
 const TRACK_CHECKPOINT_STAGE: &str = "stage II tracking";
@@ -317,7 +355,11 @@ fn load_track_checkpoint(path: &Path) -> Result<(NodeTracker, f64)> {
         if t.binding.len() != t.gaussians.len() || t.binding.iter().any(|&k| k as usize >= nodes) {
             return Err("the node binding does not match the Gaussians".into());
         }
-        if t.knots.iter().any(|p| p.len() != nodes) || t.knots.len() != t.segments_done + 1 {
+        if t.knots.iter().any(|p| p.len() != nodes)
+            || t.knots.len() != t.segments_done + 1
+            || t.gains.len() != t.knots.len()
+            || t.gains.iter().any(|g| g.len() != nodes)
+        {
             return Err("the node poses do not match the nodes".into());
         }
         if t.segments_done > t.segments() {
@@ -333,7 +375,7 @@ fn log_tracked(viz: &Viz, tracker: &NodeTracker) {
         return;
     }
     for (name, t) in [("t0", 0.0), ("t05", 0.5), ("t1", 1.0)] {
-        viz.gaussians(&format!("stage2/tracked/{name}"), &tracker.deformed(&tracker.poses_at(t)));
+        viz.gaussians(&format!("stage2/tracked/{name}"), &tracker.deformed_at(t));
     }
 }
 
@@ -344,6 +386,7 @@ struct RunSummary {
     motion_test_psnr: Option<f32>,
     moving_gaussians: usize,
     wall_time_s: f64,
+    tracking_error: Option<Vec<TrackingError>>,
 }
 
 /// Write the twin (the static base and each part's Gaussians at t = 0), log the
@@ -396,6 +439,7 @@ fn finish(
             })
             .collect(),
         gt_report,
+        tracking_error: summary.tracking_error,
     };
     let json = serde_json::to_vec_pretty(&metrics).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&run.out.join("metrics.json"), &json)?;

@@ -8,6 +8,7 @@ pub mod dynamic_stage;
 pub mod init;
 pub mod loss;
 pub mod optim;
+pub mod revealed;
 pub mod rigidity;
 pub mod static_stage;
 pub mod track;
