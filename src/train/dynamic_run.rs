@@ -261,11 +261,11 @@ fn run_node_track(
     while tracker.segments_done < tracker.segments() {
         if control.interrupt.load(Ordering::SeqCst) {
             save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
-            return Ok(DynamicOutcome::Interrupted(tracker.segments_done as u32 * per_segment));
+            return Ok(DynamicOutcome::Interrupted(tracker.fits_done as u32 * per_segment));
         }
         let fit = tracker.fit_next(&frames);
         let step = DynamicStep {
-            iteration: fit.segments_done as u32 * per_segment,
+            iteration: fit.fits_done as u32 * per_segment,
             loss: fit.loss,
             psnr: fit.psnr,
             static_count: tracker.gaussians.len(),
@@ -312,7 +312,7 @@ fn run_node_track(
     }
     let summary = RunSummary {
         preset: tracker.config.preset.clone(),
-        iterations: tracker.segments_done as u32 * per_segment,
+        iterations: tracker.fits_done as u32 * per_segment,
         motion_test_psnr,
         moving_gaussians: moving.len(),
         wall_time_s: elapsed(&started),
