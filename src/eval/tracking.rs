@@ -97,29 +97,9 @@ mod tests {
     use crate::synth::{JointRecord, JointType, JointsFile};
 
     fn cube(lo: Vec3, hi: Vec3) -> MeshData {
-        let c = |i: u32| {
-            Vec3::new(
-                if i & 1 == 0 { lo.x } else { hi.x },
-                if i & 2 == 0 { lo.y } else { hi.y },
-                if i & 4 == 0 { lo.z } else { hi.z },
-            )
-        };
-        let vertices = (0..8).map(c).collect();
-        let faces = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
-        MeshData { vertices, triangles: faces }
+        let mut m = MeshData::default();
+        crate::synth::Shape::cuboid(lo, hi).tessellate(8, &mut m);
+        m
     }
 
     /// A base cube and a lid that slides 0.5 along +x: points that follow the lid
