@@ -412,16 +412,12 @@ impl NodeTracker {
 
     /// The node poses at time `t` (interpolated between the fitted knots).
     pub fn poses_at(&self, t: f32) -> Vec<NodePose> {
-        self.interpolated(&self.knots, t)
+        self.interpolated(&self.knots, t, NodePose::lerp)
     }
 
     /// The node log gains at time `t` (linear between the fitted knots).
     pub fn gains_at(&self, t: f32) -> Vec<f32> {
-        let (k, a) = self.bracket(t);
-        match self.gains.get(k + 1) {
-            Some(next) if a > 0.0 => self.gains[k].iter().zip(next).map(|(g, h)| g + a * (h - g)).collect(),
-            _ => self.gains[k].clone(),
-        }
+        self.interpolated(&self.gains, t, |g, h, a| g + a * (h - g))
     }
 
     /// The Gaussians as tracked at time `t`.
@@ -429,12 +425,38 @@ impl NodeTracker {
         self.deformed(&self.poses_at(t), &self.gains_at(t))
     }
 
-    /// Poses at time `t` from per-knot poses `knots` (node or part poses, one entry per fitted knot).
-    fn interpolated(&self, knots: &[Vec<NodePose>], t: f32) -> Vec<NodePose> {
+    /// Values at time `t` from per-knot values `knots` (node or part poses, node
+    /// gains; one entry per fitted knot), `lerp(a, b, f)` a fraction f from a to b.
+    fn interpolated<T: Clone>(&self, knots: &[Vec<T>], t: f32, lerp: impl Fn(&T, &T, f32) -> T) -> Vec<T> {
         let (k, a) = self.bracket(t);
         match knots.get(k + 1) {
-            Some(next) if a > 0.0 => knots[k].iter().zip(next).map(|(p, q)| p.lerp(q, a)).collect(),
+            Some(next) if a > 0.0 => knots[k].iter().zip(next).map(|(p, q)| lerp(p, q, a)).collect(),
             _ => knots[k].clone(),
+        }
+    }
+
+    /// A gradient at time `t` spread over the knots `first..=last` it blends (knots
+    /// k and k + 1 get 1 - a and a of it), one row of `at_t.len()` per knot.
+    fn spread_over_knots(&self, at_t: &[f32], t: f32, first: usize, last: usize) -> Vec<f32> {
+        let (k, a) = self.bracket(t);
+        let n = at_t.len();
+        let mut grad = vec![0.0; n * (last + 1 - first)];
+        for (knot, share) in [(k, 1.0 - a), (k + 1, a)] {
+            if knot >= first && knot <= last && share > 0.0 {
+                let row = (knot - first) * n;
+                grad[row..row + n].iter_mut().zip(at_t).for_each(|(g, v)| *g += share * v);
+            }
+        }
+        grad
+    }
+
+    /// Zero the frozen nodes' entries in every knot row of a per-node gradient
+    /// (`per_node` values per node).
+    fn zero_frozen(&self, grad: &mut [f32], per_node: usize) {
+        for row in grad.chunks_exact_mut(per_node * self.frozen.len()) {
+            for (k, _) in self.frozen.iter().enumerate().filter(|(_, f)| **f) {
+                row[per_node * k..per_node * (k + 1)].fill(0.0);
+            }
         }
     }
 
@@ -508,18 +530,8 @@ impl NodeTracker {
             }
             let mut at_t = self.photometric_node_gradient(&poses, &g, &grads.params);
             if c.track.lr_gain > 0.0 {
-                let at_t = self.gain_gradient(&g, &grads.params);
-                let (k, a) = self.bracket(t);
-                let mut grad = vec![0.0; n_nodes * (j + 1 - gain_free)];
-                for (knot, share) in [(k, 1.0 - a), (k + 1, a)] {
-                    if knot >= gain_free && knot <= j && share > 0.0 {
-                        let row = (knot - gain_free) * n_nodes;
-                        grad[row..row + n_nodes].iter_mut().zip(&at_t).for_each(|(g, v)| *g += share * v);
-                    }
-                }
-                for (k, _) in self.frozen.iter().enumerate().filter(|(_, f)| **f) {
-                    grad.chunks_exact_mut(n_nodes).for_each(|row| row[k] = 0.0);
-                }
+                let mut grad = self.spread_over_knots(&self.gain_gradient(&g, &grads.params), t, gain_free, j);
+                self.zero_frozen(&mut grad, 1);
                 let step = gain_optimizer.step(&grad, &[c.track.lr_gain]);
                 for (knot, s) in (gain_free..=j).zip(step.chunks_exact(n_nodes)) {
                     self.gains[knot].iter_mut().zip(s).for_each(|(g, d)| *g += d);
@@ -530,21 +542,10 @@ impl NodeTracker {
                 at_t = parts.part_gradient(&self.node_centres, &at_t, &parts.poses[j]);
             }
             // The pose at t blends knots k and k + 1: each gets its share of the gradient.
-            let (k, a) = self.bracket(t);
             let n6 = at_t.len();
-            let mut grad = vec![0.0; optimizer.rows() * 6];
-            for (knot, share) in [(k, 1.0 - a), (k + 1, a)] {
-                if knot >= free && knot <= j && share > 0.0 {
-                    let row = (knot - free) * n6;
-                    grad[row..row + n6].iter_mut().zip(&at_t).for_each(|(g, v)| *g += share * v);
-                }
-            }
+            let mut grad = self.spread_over_knots(&at_t, t, free, j);
             if !articulated {
-                for (k, _) in self.frozen.iter().enumerate().filter(|(_, f)| **f) {
-                    for row in grad.chunks_exact_mut(n6) {
-                        row[6 * k..6 * k + 6].fill(0.0);
-                    }
-                }
+                self.zero_frozen(&mut grad, 6);
             }
             let step = optimizer.step(&grad, &[c.track.lr_rotation, c.track.lr_translation * self.object_size]);
             // Rotations are updated on the manifold, R <- exp(d) R.
@@ -965,7 +966,7 @@ impl NodeTracker {
         let total: f32 = views
             .iter()
             .map(|v| {
-                let at = self.interpolated(&parts.poses, v.time.unwrap_or(0.0));
+                let at = self.interpolated(&parts.poses, v.time.unwrap_or(0.0), NodePose::lerp);
                 let t = v.time.unwrap_or(0.0);
                 let poses = assigned.node_poses(&self.node_centres, &at);
                 let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
@@ -1008,8 +1009,9 @@ impl NodeTracker {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct NodeOptimizer {
     m: Vec<f32>,
-    /// Columns per parameter kind (poses: 3 rotation, 3 translation; gains: 1).
-    kinds: Vec<usize>,
+    /// The parameter kind of each column of a row (poses: 3 rotation, 3
+    /// translation; gains: 1); each kind has its own second moment in `v`.
+    kind_of: Vec<usize>,
     v: Vec<f32>,
     steps: u32,
 }
@@ -1017,16 +1019,17 @@ pub struct NodeOptimizer {
 const MAX_STEP: f32 = 3.0;
 
 impl NodeOptimizer {
+    /// `kinds`: the number of columns of each parameter kind, in row order.
     fn new(rows: usize, kinds: &[usize]) -> Self {
-        let width: usize = kinds.iter().sum();
-        Self { m: vec![0.0; width * rows], kinds: kinds.to_vec(), v: vec![0.0; kinds.len()], steps: 0 }
+        let kind_of: Vec<usize> = kinds.iter().enumerate().flat_map(|(k, &n)| std::iter::repeat_n(k, n)).collect();
+        Self { m: vec![0.0; kind_of.len() * rows], kind_of, v: vec![0.0; kinds.len()], steps: 0 }
     }
 
     fn width(&self) -> usize {
-        self.kinds.iter().sum()
+        self.kind_of.len()
     }
 
-    pub(crate) fn rows(&self) -> usize {
+    fn rows(&self) -> usize {
         self.m.len() / self.width().max(1)
     }
 
@@ -1035,8 +1038,7 @@ impl NodeOptimizer {
         self.steps += 1;
         let t = self.steps as i32;
         let (width, rows) = (self.width(), self.rows().max(1) as f32);
-        // Each column's kind.
-        let kind_of: Vec<usize> = self.kinds.iter().enumerate().flat_map(|(k, &n)| std::iter::repeat_n(k, n)).collect();
+        let kind_of = &self.kind_of;
         for (kind, v) in self.v.iter_mut().enumerate() {
             let cols: Vec<usize> = (0..width).filter(|&c| kind_of[c] == kind).collect();
             let mean_sq: f32 =
