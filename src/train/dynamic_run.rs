@@ -288,7 +288,21 @@ fn run_node_track(
         progress(&step);
     }
     save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
-    tracker.merge_redundant_parts(&frames);
+    // The end state seen from around the object (the frames after the hand lets
+    // go), when the capture has it, at time 1: the parts' end poses are fitted on
+    // it, and it is part of the evidence the parts are judged on.
+    let mut end_views =
+        if tracker.config.track.end_iterations > 0 && run.dataset.join("end").join("transforms_train.json").exists() {
+            load_phase_views(run.dataset, Phase::After, tracker.config.resolution)?.0
+        } else {
+            Vec::new()
+        };
+    end_views.iter_mut().for_each(|v| v.time = Some(1.0));
+    tracker.refit_end_poses(&end_views);
+    tracker.merge_redundant_parts(&frames, &end_views);
+    if tracker.clean_parts(&frames, &end_views) > 0 {
+        tracker.refit_end_poses(&end_views);
+    }
     let motion_test_psnr = (!run.test.is_empty()).then(|| tracker.evaluate(run.test));
     let tracking_error = node_tracking_error(run.dataset, &tracker)?;
     let (parts, labels) = tracker.analyse();

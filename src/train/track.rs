@@ -67,6 +67,17 @@ pub struct TrackConfig {
     /// follows a part through views where single nodes lose it (a door seen
     /// edge-on, its never-seen inside showing). 1 = free tracking throughout.
     pub discovery_time: f32,
+    /// At this time (after discovery) each part is cleaned of pieces that explain
+    /// the frames as well as part of the base or of a neighbouring part
+    /// (`NodeTracker::clean_parts`), and tracked clean for the rest of the motion;
+    /// the parts are cleaned again at the end. 1 = only at the end.
+    pub clean_time: f32,
+    /// Iterations of each refit of the parts' end poses on the end-state views
+    /// (the frames after the hand lets go, seen from around the object), when the
+    /// capture has them; 0 = none. The video sees a part from a narrow arc, much
+    /// of its motion along the line of sight; the end state seen from all round
+    /// pins the pose the joint is read from.
+    pub end_iterations: u32,
     /// Static-during-motion detection on nodes: from this many fitted segments on,
     /// a node that has stayed within `freeze_translation` (times the object size)
     /// and `freeze_rotation` (radians) of its start pose at every knot so far is
@@ -121,6 +132,8 @@ impl Default for TrackConfig {
             merge_tolerance: 0.01,
             validation_residual_cap: 0.25,
             discovery_time: 0.4,
+            clean_time: 0.6,
+            end_iterations: 300,
             freeze_after_segments: 6,
             freeze_translation: 0.01,
             freeze_rotation: 0.02,
@@ -164,6 +177,9 @@ impl TrackConfig {
         }
         if !(self.discovery_time > 0.0 && self.discovery_time <= 1.0) {
             return Err(format!("track.discovery_time must be in (0, 1], got {}", self.discovery_time));
+        }
+        if !(self.clean_time >= self.discovery_time && self.clean_time <= 1.0) {
+            return Err(format!("track.clean_time must be in [discovery_time, 1], got {}", self.clean_time));
         }
         if !(0.0..1.0).contains(&self.min_opacity) {
             return Err(format!("track.min_opacity must be in [0, 1), got {}", self.min_opacity));
@@ -281,25 +297,41 @@ impl TrackedParts {
         grad
     }
 
-    /// The node poses that carry every node of each part with its part's pose.
+    /// These parts with the nodes labelled by `node_part` (0 = base, p = part p),
+    /// parts left without nodes dropped and the rest renumbered in order.
+    fn relabelled(&self, node_part: Vec<usize>) -> TrackedParts {
+        let kept: Vec<usize> = (1..=self.centres.len()).filter(|&p| node_part.contains(&p)).collect();
+        let renumber = |l: usize| kept.iter().position(|&k| k == l).map_or(0, |i| i + 1);
+        TrackedParts {
+            node_part: node_part.iter().map(|&l| renumber(l)).collect(),
+            centres: kept.iter().map(|&p| self.centres[p - 1]).collect(),
+            poses: self.poses.iter().map(|k| kept.iter().map(|&p| k[p - 1]).collect()).collect(),
+        }
+    }
+
+    /// The node poses that carry every node of each part with its part's pose
+    /// (the base's nodes at the start pose).
     fn node_poses(&self, node_centres: &[Vec3], part_poses: &[NodePose]) -> Vec<NodePose> {
-        node_centres
-            .iter()
-            .zip(&self.node_part)
-            .map(|(&p, &part)| match part {
-                0 => NodePose::IDENTITY,
-                k => {
-                    let (c, g) = (self.centres[k - 1], part_poses[k - 1]);
-                    NodePose { rotation: g.rotation, translation: g.apply(c, p) - p }
-                }
-            })
-            .collect()
+        let mut poses = vec![NodePose::IDENTITY; node_centres.len()];
+        self.carry(node_centres, part_poses, &mut poses);
+        poses
+    }
+
+    /// Set the poses of the parts' nodes in `poses` to their parts' (the base's nodes keep theirs).
+    fn carry(&self, node_centres: &[Vec3], part_poses: &[NodePose], poses: &mut [NodePose]) {
+        for ((pose, &p), &part) in poses.iter_mut().zip(node_centres).zip(&self.node_part) {
+            if part > 0 {
+                let (c, g) = (self.centres[part - 1], part_poses[part - 1]);
+                *pose = NodePose { rotation: g.rotation, translation: g.apply(c, p) - p };
+            }
+        }
     }
 }
 
 /// Random streams: the training backgrounds and the frames drawn in a segment.
 const STREAM_BACKGROUND: u64 = 21;
 const STREAM_FRAMES: u64 = 22;
+const STREAM_END_VIEWS: u64 = 23;
 
 impl NodeTracker {
     /// Bind the start state to nodes; `scan` (the start-state views' cameras)
@@ -370,6 +402,11 @@ impl NodeTracker {
     /// Time segments to fit (one per knot after the start state).
     pub fn segments(&self) -> usize {
         self.config.track.knots - 1
+    }
+
+    /// The first knot at or after time `t`.
+    fn knot_at(&self, t: f32) -> usize {
+        ((t * self.segments() as f32) - 1e-4).ceil() as usize
     }
 
     fn knot_time(&self, k: usize) -> f32 {
@@ -518,14 +555,18 @@ impl NodeTracker {
             let bg = background_for(view, c.seed, it, c.random_background, c.eval_background, STREAM_BACKGROUND);
             let poses = self.poses_at(t);
             let gains = self.gains_at(t);
-            let g = self.revealed.with(self.deformed(&poses, &gains));
+            // Revealed content joins once the parts are found: learnt during free
+            // tracking, it explained a drawer's emerging body as static and the
+            // drawer was never found (docs/training.md).
+            let deformed = self.deformed(&poses, &gains);
+            let g = if articulated { self.revealed.with(deformed) } else { deformed };
             let r = render(&g, &view.camera, &RenderOptions { background: bg, sh_degree: None });
             let target = view.target(bg);
             let (w, h) = (r.width as usize, r.height as usize);
             let l = loss_and_grad(&r.image.color, &target, w, h, c.lambda_dssim);
             let grads = backward(&g, &r, &l.grad, None, None);
             let tracked = self.gaussians.len();
-            if !self.revealed.is_empty() {
+            if articulated && !self.revealed.is_empty() {
                 self.revealed.step(&grads.params.rows(tracked..g.len()));
             }
             let mut at_t = self.photometric_node_gradient(&poses, &g, &grads.params);
@@ -548,19 +589,12 @@ impl NodeTracker {
                 self.zero_frozen(&mut grad, 6);
             }
             let step = optimizer.step(&grad, &[c.track.lr_rotation, c.track.lr_translation * self.object_size]);
-            // Rotations are updated on the manifold, R <- exp(d) R.
-            let apply = |poses: &mut [NodePose], s: &[f32]| {
-                for (pose, s) in poses.iter_mut().zip(s.chunks_exact(6)) {
-                    pose.rotation = (Quat::from_scaled_axis(Vec3::new(s[0], s[1], s[2])) * pose.rotation).normalize();
-                    pose.translation += Vec3::new(s[3], s[4], s[5]);
-                }
-            };
             if let Some(parts) = &mut self.articulation {
-                apply(&mut parts.poses[j], &step);
-                self.knots[j] = parts.node_poses(&self.node_centres, &parts.poses[j]);
+                apply_step(&mut parts.poses[j], &step);
+                parts.carry(&self.node_centres, &parts.poses[j], &mut self.knots[j]);
             } else {
                 for (knot, s) in (free..=j).zip(step.chunks_exact(n6)) {
-                    apply(&mut self.knots[knot], s);
+                    apply_step(&mut self.knots[knot], s);
                 }
             }
             if i >= per_segment - tail {
@@ -580,6 +614,9 @@ impl NodeTracker {
         self.fits_done += 1;
         if !articulated && self.segments_done >= c.track.freeze_after_segments {
             self.freeze_static_nodes();
+        }
+        if articulated && j == self.knot_at(c.track.clean_time) && j < self.segments() {
+            self.clean_parts(frames, &[]);
         }
         if !articulated && self.knot_time(j) >= c.track.discovery_time - 1e-6 && j < self.segments() {
             self.articulation = self.discover_parts();
@@ -679,12 +716,16 @@ impl NodeTracker {
         }
     }
 
-    /// Whether node k stays put over the whole tracked motion (SDMD's test on nodes).
-    fn node_is_static(&self, k: usize) -> bool {
+    /// Whether node k stays put over the tracked motion (SDMD's test on nodes), with
+    /// the thresholds scaled by `seen`, the part of the motion tracked so far (parts
+    /// move in proportion to time: a drawer that slides 10 cm in all has moved 4 cm
+    /// by t = 0.4).
+    fn node_is_static(&self, k: usize, seen: f32) -> bool {
         let c = &self.config;
+        let (max_r, max_t) = (c.sdmd_max_rotation * f64::from(seen), c.sdmd_max_translation * f64::from(seen));
         self.knots.iter().all(|p| {
-            f64::from(p[k].rotation.angle_between(Quat::IDENTITY)) <= c.sdmd_max_rotation
-                && f64::from(p[k].translation.length()) <= c.sdmd_max_translation
+            f64::from(p[k].rotation.angle_between(Quat::IDENTITY)) <= max_r
+                && f64::from(p[k].translation.length()) <= max_t
         })
     }
 
@@ -730,7 +771,7 @@ impl NodeTracker {
     /// the motion seen so far). Returns the groups and each node's label (0 = static).
     fn segment_nodes(&self, t_end: f32) -> (Vec<PartEstimate>, Vec<usize>) {
         let n_nodes = self.node_centres.len();
-        let moving_node: Vec<bool> = (0..n_nodes).map(|k| !self.frozen[k] && !self.node_is_static(k)).collect();
+        let moving_node: Vec<bool> = (0..n_nodes).map(|k| !self.frozen[k] && !self.node_is_static(k, t_end)).collect();
         let index: Vec<usize> = (0..self.gaussians.len())
             .filter(|&i| moving_node[self.binding[i] as usize] && self.gaussians.opacity(i) >= 0.1)
             .collect();
@@ -752,6 +793,20 @@ impl NodeTracker {
         config.sdmd_max_translation *= f64::from(t_end);
         let (found, _) = parts_from_trajectories(&config, &traj, &index);
         let found = self.merge_same_motion(found);
+        for (p, part) in found.iter().enumerate() {
+            let centroid =
+                part.members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / part.members.len().max(1) as f32;
+            tracing::debug!(
+                group = p + 1,
+                kind = ?part.joint.kind,
+                axis = ?part.joint.axis.as_vec3().to_array(),
+                amount = part.joint.amount,
+                gaussians = part.members.len(),
+                centroid = ?centroid.to_array(),
+                time = t_end,
+                "stage II: a rigid group among the tracked nodes"
+            );
+        }
         // A node takes the part most of its analysed Gaussians joined; moving nodes
         // that joined none take their nearest labelled node's part (leftovers to
         // the nearest part, as the official code does), static nodes are the base.
@@ -785,43 +840,19 @@ impl NodeTracker {
         (found, node_label.into_iter().map(|l| l.unwrap_or(0)).collect())
     }
 
-    /// Merge groups that move the same way, as the official code's
-    /// `search_and_merge`: same joint type, axes within `MERGE_AXIS_ANGLE`, and
-    /// for revolute joints axis lines within half the median part radius and
-    /// angles within `MERGE_AXIS_ANGLE`; for prismatic ones amounts within 20 %.
-    /// Free tracking splits one door into pieces whose trajectories differ by more
-    /// than RANSAC's threshold but whose joints agree.
+    /// Merge groups that move the same way (`same_joint`, as the official code's
+    /// `search_and_merge`). Free tracking splits one door into pieces whose
+    /// trajectories differ by more than RANSAC's threshold but whose joints agree.
     fn merge_same_motion(&self, mut found: Vec<PartEstimate>) -> Vec<PartEstimate> {
-        const MERGE_AXIS_ANGLE: f64 = 0.2;
         let radius = |p: &PartEstimate| {
             let pts: Vec<DVec3> = p.members.iter().map(|&i| self.gaussians.mean(i).as_dvec3()).collect();
-            let c = pts.iter().copied().sum::<DVec3>() / pts.len().max(1) as f64;
-            pts.iter().map(|x| x.distance(c)).sum::<f64>() / pts.len().max(1) as f64
+            mean_radius(&pts)
         };
         loop {
-            let mut radii: Vec<f64> = found.iter().map(radius).collect();
-            radii.sort_by(f64::total_cmp);
-            let median_radius = radii.get(radii.len() / 2).copied().unwrap_or(0.0);
-            let same = |a: &PartEstimate, b: &PartEstimate| {
-                let (ja, jb) = (&a.joint, &b.joint);
-                if ja.kind != jb.kind || ja.axis.dot(jb.axis) < MERGE_AXIS_ANGLE.cos() {
-                    return false;
-                }
-                match ja.kind {
-                    crate::motion::JointKind::Revolute => {
-                        let line_gap = 0.5
-                            * ((jb.origin - ja.origin).cross(ja.axis).length()
-                                + (ja.origin - jb.origin).cross(jb.axis).length());
-                        line_gap < 0.5 * median_radius && (ja.amount - jb.amount).abs() < MERGE_AXIS_ANGLE
-                    }
-                    crate::motion::JointKind::Prismatic => {
-                        (ja.amount - jb.amount).abs() < 0.2 * ja.amount.max(jb.amount)
-                    }
-                }
-            };
+            let median_radius = median(found.iter().map(radius).collect());
             let pair = (0..found.len())
                 .flat_map(|a| (a + 1..found.len()).map(move |b| (a, b)))
-                .find(|&(a, b)| same(&found[a], &found[b]));
+                .find(|&(a, b)| same_joint(&found[a].joint, &found[b].joint, median_radius));
             let Some((a, b)) = pair else {
                 return found;
             };
@@ -830,6 +861,64 @@ impl NodeTracker {
             let moved = std::mem::take(&mut found[gone].members);
             found[keep].members.extend(moved);
             found.remove(gone);
+        }
+    }
+
+    /// Merge rigidly tracked parts that carry the same joint over the whole motion
+    /// (`same_joint` on each part's motion from t = 0 to the last knot) and whose
+    /// motions carry each other's nodes to within `CROSS_RESIDUAL` of their median
+    /// displacement (the official code's cross-residual test): fragments of one
+    /// door discovered on lagging free trajectories, each then tracked rigidly.
+    /// The larger part's motion stands for both.
+    fn merge_same_joint_parts(&self, mut parts: TrackedParts) -> TrackedParts {
+        const CROSS_RESIDUAL: f32 = 0.75;
+        let counts = self.binding_counts();
+        loop {
+            let last = parts.poses.last().expect("the start state");
+            let nodes: Vec<Vec<usize>> = (1..=parts.centres.len())
+                .map(|p| (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == p).collect())
+                .collect();
+            let moved = |p: usize, k: usize| last[p].apply(parts.centres[p], self.node_centres[k]);
+            let joints: Vec<Option<crate::motion::JointEstimate>> = (0..nodes.len())
+                .map(|p| {
+                    (!nodes[p].is_empty()).then(|| {
+                        let (c, pose) = (parts.centres[p].as_dvec3(), last[p]);
+                        let r = glam::DMat3::from_quat(pose.rotation.as_dquat());
+                        let motion = Rigid { r, t: pose.apply(parts.centres[p], parts.centres[p]).as_dvec3() - r * c };
+                        extract_joint(&motion, c)
+                    })
+                })
+                .collect();
+            let radii: Vec<f64> = nodes
+                .iter()
+                .filter(|n| !n.is_empty())
+                .map(|n| mean_radius(&n.iter().map(|&k| self.node_centres[k].as_dvec3()).collect::<Vec<_>>()))
+                .collect();
+            let median_radius = median(radii);
+            // Does part a's motion carry part b's nodes where b's own motion does?
+            let carries = |a: usize, b: usize| {
+                let mut shift: Vec<f32> =
+                    nodes[b].iter().map(|&k| moved(b, k).distance(self.node_centres[k])).collect();
+                let gap: f32 = nodes[b].iter().map(|&k| moved(a, k).distance(moved(b, k))).sum::<f32>()
+                    / nodes[b].len().max(1) as f32;
+                shift.sort_by(f32::total_cmp);
+                gap < CROSS_RESIDUAL * shift.get(shift.len() / 2).copied().unwrap_or(0.0)
+            };
+            let pair =
+                (0..nodes.len()).flat_map(|a| (a + 1..nodes.len()).map(move |b| (a, b))).find(|&(a, b)| {
+                    match (&joints[a], &joints[b]) {
+                        (Some(ja), Some(jb)) => same_joint(ja, jb, median_radius) && carries(a, b) && carries(b, a),
+                        _ => false,
+                    }
+                });
+            let Some((a, b)) = pair else {
+                return parts;
+            };
+            let size = |p: usize| nodes[p].iter().map(|&k| counts[k]).sum::<usize>();
+            let (keep, gone) = if size(a) >= size(b) { (a + 1, b + 1) } else { (b + 1, a + 1) };
+            tracing::info!(part = gone, into = keep, "stage III: merged a part that moves with the same joint");
+            let node_part: Vec<usize> = parts.node_part.iter().map(|&l| if l == gone { keep } else { l }).collect();
+            parts = parts.relabelled(node_part);
         }
     }
 
@@ -852,36 +941,37 @@ impl NodeTracker {
         if found.is_empty() {
             return None;
         }
-        let centres: Vec<Vec3> = (1..=found.len())
-            .map(|p| {
-                let members: Vec<usize> =
-                    (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == p).collect();
-                members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32
-            })
-            .collect();
-        let poses = self
-            .knots
-            .iter()
-            .map(|knot| {
-                (1..=found.len())
-                    .map(|p| {
-                        let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
-                        let Some(m) = self.nodes_rigid_fit(&nodes, knot) else {
-                            return NodePose::IDENTITY;
-                        };
-                        let c = centres[p - 1];
-                        let rotation = glam::DQuat::from_mat3(&m.r).as_quat().normalize();
-                        NodePose { rotation, translation: m.apply_f32(c) - c }
-                    })
-                    .collect()
-            })
-            .collect();
+        let mut parts = TrackedParts { node_part: vec![0; node_part.len()], centres: Vec::new(), poses: Vec::new() };
+        parts.poses.resize(self.knots.len(), Vec::new());
+        self.add_fitted_parts(&mut parts, &node_part);
         tracing::info!(
             parts = found.len(),
             time = t_end,
             "stage II: parts found on the tracked nodes; tracking them rigidly from here"
         );
-        Some(TrackedParts { node_part, centres, poses })
+        Some(parts)
+    }
+
+    /// Add the groups of base nodes that `labels` marks (p >= 1 for group p) to
+    /// `parts`, each with its centre and its pose at every knot fitted rigidly to
+    /// its nodes' tracked poses.
+    fn add_fitted_parts(&self, parts: &mut TrackedParts, labels: &[usize]) {
+        let first = parts.centres.len();
+        for p in 1..=labels.iter().copied().max().unwrap_or(0) {
+            let nodes: Vec<usize> = (0..labels.len()).filter(|&k| labels[k] == p && parts.node_part[k] == 0).collect();
+            let mut in_group = vec![false; labels.len()];
+            nodes.iter().for_each(|&k| in_group[k] = true);
+            let members: Vec<usize> = (0..self.binding.len()).filter(|&i| in_group[self.binding[i] as usize]).collect();
+            let c = members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
+            for (knot, poses) in self.knots.iter().zip(&mut parts.poses) {
+                poses.push(self.nodes_rigid_fit(&nodes, knot).map_or(NodePose::IDENTITY, |m| {
+                    let rotation = glam::DQuat::from_mat3(&m.r).as_quat().normalize();
+                    NodePose { rotation, translation: m.apply_f32(c) - c }
+                }));
+            }
+            parts.centres.push(c);
+            nodes.iter().for_each(|&k| parts.node_part[k] = first + p);
+        }
     }
 
     /// Occam's test on the parts found: a part whose nodes, given to another part's
@@ -890,25 +980,20 @@ impl NodeTracker {
     /// One door split into two groups, or a static shelf that drifted with the
     /// door, thus becomes one part, whatever their motions' parameters. Returns
     /// how many parts were merged away.
-    pub fn merge_redundant_parts(&mut self, frames: &[TrainView]) -> usize {
+    pub fn merge_redundant_parts(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
         let Some(parts) = self.articulation.clone() else {
             return 0;
         };
-        // The frames up to the last fitted knot (all of them once the motion is fitted).
-        let t_end = self.knot_time(self.knots.len() - 1);
-        let seen: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t <= t_end + 1e-6)).collect();
-        let n = self.config.track.validation_frames.min(seen.len());
-        if n == 0 {
-            return 0;
-        }
-        let check: Vec<&TrainView> = (0..n).map(|i| seen[(i * (seen.len() - 1)) / (n - 1).max(1)]).collect();
+        let before = parts.centres.len();
+        let parts = self.merge_same_joint_parts(parts);
+        let mut merged = before - parts.centres.len();
+        let check = self.validation_views(frames, end_views);
         let mut node_part = parts.node_part.clone();
-        let mut current = self.articulated_loss(&parts, &node_part, &check);
-        let mut merged = 0;
+        let mut current = if check.is_empty() { 0.0 } else { self.articulated_loss(&parts, &node_part, &check) };
         let counts = self.binding_counts();
         let size =
             |np: &[usize], p: usize| np.iter().zip(&counts).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>();
-        let mut order: Vec<usize> = (1..=parts.centres.len()).collect();
+        let mut order: Vec<usize> = if check.is_empty() { Vec::new() } else { (1..=parts.centres.len()).collect() };
         order.sort_by_key(|&p| size(&node_part, p));
         for q in order {
             let best = (0..=parts.centres.len())
@@ -934,21 +1019,161 @@ impl NodeTracker {
                 }
             }
         }
-        // Renumber the parts that are left.
-        let kept: Vec<usize> = (1..=parts.centres.len()).filter(|&p| node_part.contains(&p)).collect();
-        let renumber = |l: usize| kept.iter().position(|&k| k == l).map_or(0, |i| i + 1);
-        let articulation = TrackedParts {
-            node_part: node_part.iter().map(|&l| renumber(l)).collect(),
-            centres: kept.iter().map(|&p| parts.centres[p - 1]).collect(),
-            poses: parts.poses.iter().map(|k| kept.iter().map(|&p| k[p - 1]).collect()).collect(),
-        };
+        self.set_articulation(parts.relabelled(node_part));
+        merged
+    }
+
+    /// Track with `parts` from here on, the fitted knots carrying their nodes (the base's at rest).
+    fn set_articulation(&mut self, parts: TrackedParts) {
         for (k, knot) in self.knots.iter_mut().enumerate().skip(1) {
-            if let Some(poses) = articulation.poses.get(k) {
-                *knot = articulation.node_poses(&self.node_centres, poses);
+            if let Some(poses) = parts.poses.get(k) {
+                *knot = parts.node_poses(&self.node_centres, poses);
             }
         }
-        self.articulation = Some(articulation);
-        merged
+        self.articulation = Some(parts);
+    }
+
+    /// `validation_frames` motion frames up to the last fitted knot and as many
+    /// end-state views (at time 1), each evenly spread.
+    fn validation_views<'a>(&self, frames: &'a [TrainView], end_views: &'a [TrainView]) -> Vec<&'a TrainView> {
+        let t_end = self.knot_time(self.knots.len() - 1);
+        let seen: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t <= t_end + 1e-6)).collect();
+        let spread = |views: &[&'a TrainView]| -> Vec<&'a TrainView> {
+            let n = self.config.track.validation_frames.min(views.len());
+            (0..n).map(|i| views[(i * (views.len() - 1)) / (n - 1).max(1)]).collect()
+        };
+        let mut check = spread(&seen);
+        if t_end >= 1.0 - 1e-6 {
+            check.extend(spread(&end_views.iter().collect::<Vec<_>>()));
+        }
+        check
+    }
+
+    /// Fit each part's pose at the last knot again on `end_views` (the end state,
+    /// time 1) for `track.end_iterations` iterations, the parts rigid. Returns the
+    /// photometric loss over the last tenth of the iterations (None when there is
+    /// nothing to refit).
+    pub fn refit_end_poses(&mut self, end_views: &[TrainView]) -> Option<f32> {
+        let iterations = self.config.track.end_iterations;
+        let n_parts = self.articulation.as_ref().map_or(0, |a| a.centres.len());
+        if end_views.is_empty() || iterations == 0 || n_parts == 0 {
+            return None;
+        }
+        let c = self.config.clone();
+        let last = self.knots.len() - 1;
+        let mut optimizer = NodeOptimizer::new(n_parts, &[3, 3]);
+        let tail = (iterations / 10).max(1);
+        let mut loss = 0.0;
+        for i in 0..iterations {
+            let mut rng = super::static_stage::rng_for(c.seed, STREAM_END_VIEWS, u64::from(i));
+            let view = &end_views[rand::Rng::random_range(&mut rng, 0..end_views.len())];
+            let bg = background_for(view, c.seed, i, c.random_background, c.eval_background, STREAM_END_VIEWS);
+            let poses = self.knots[last].clone();
+            let g = self.revealed.with(self.deformed(&poses, &self.gains[last]));
+            let r = render(&g, &view.camera, &RenderOptions { background: bg, sh_degree: None });
+            let target = view.target(bg);
+            let l = loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, c.lambda_dssim);
+            let grads = backward(&g, &r, &l.grad, None, None);
+            let at = self.photometric_node_gradient(&poses, &g, &grads.params);
+            let parts = self.articulation.as_mut().expect("parts");
+            let grad = parts.part_gradient(&self.node_centres, &at, &parts.poses[last]);
+            let step = optimizer.step(&grad, &[c.track.lr_rotation, c.track.lr_translation * self.object_size]);
+            apply_step(&mut parts.poses[last], &step);
+            parts.carry(&self.node_centres, &parts.poses[last], &mut self.knots[last]);
+            if i >= iterations - tail {
+                loss += l.loss / tail as f32;
+            }
+        }
+        tracing::info!(loss, views = end_views.len(), "stage II: the parts' end poses fitted on the end-state views");
+        Some(loss)
+    }
+
+    /// Occam's test on pieces of parts: each part's nodes are cut into spatial
+    /// chunks of about `CHUNK_NODES` nodes, and a chunk whose nodes explain the
+    /// motion frames (and the end state, when given) better when given to the
+    /// base or to one of the two parts nearest it moves there. Discovery on
+    /// lagging free trajectories hands a part nodes of the base beside it (29 % of
+    /// the storage drawer's Gaussians were the cabinet's front frame), and the
+    /// rigid fit of a part carrying them tilts its axis. Returns the chunks moved.
+    pub fn clean_parts(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
+        const CHUNK_NODES: usize = 16;
+        const MAX_CHUNKS: usize = 24;
+        let Some(parts) = self.articulation.clone() else {
+            return 0;
+        };
+        let check = self.validation_views(frames, end_views);
+        if check.is_empty() {
+            return 0;
+        }
+        let mut node_part = parts.node_part.clone();
+        let mut current = self.articulated_loss(&parts, &node_part, &check);
+        let mut moved = 0;
+        for p in 1..=parts.centres.len() {
+            let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
+            let chunks = (nodes.len() / CHUNK_NODES).clamp(1, MAX_CHUNKS);
+            for chunk in self.spatial_chunks(&nodes, chunks) {
+                let centre = chunk.iter().map(|&k| self.node_centres[k]).sum::<Vec3>() / chunk.len() as f32;
+                let gap = |q: usize| {
+                    (0..node_part.len())
+                        .filter(|&k| node_part[k] == q)
+                        .map(|k| self.node_centres[k].distance(centre))
+                        .fold(f32::INFINITY, f32::min)
+                };
+                let mut others: Vec<(usize, f32)> =
+                    (1..=parts.centres.len()).filter(|&q| q != p).map(|q| (q, gap(q))).collect();
+                others.sort_by(|a, b| a.1.total_cmp(&b.1));
+                let targets = std::iter::once(0).chain(others.iter().take(2).filter(|o| o.1.is_finite()).map(|o| o.0));
+                let best = targets
+                    .map(|q| {
+                        let mut trial = node_part.clone();
+                        chunk.iter().for_each(|&k| trial[k] = q);
+                        let loss = self.articulated_loss(&parts, &trial, &check);
+                        (q, trial, loss)
+                    })
+                    .min_by(|a, b| a.2.total_cmp(&b.2));
+                // Strictly better only: a piece is too small for a tolerance on the
+                // whole frames' loss (1 % accepted nearly every piece, one after another).
+                if let Some((q, trial, loss)) = best {
+                    if loss < current {
+                        tracing::debug!(
+                            part = p,
+                            into = q,
+                            nodes = chunk.len(),
+                            loss,
+                            before = current,
+                            "stage II: a piece of a part moved"
+                        );
+                        node_part = trial;
+                        current = loss;
+                        moved += 1;
+                    }
+                }
+            }
+        }
+        if moved > 0 {
+            tracing::info!(chunks = moved, "stage II: pieces of parts given to the base or another part");
+        }
+        self.set_articulation(parts.relabelled(node_part));
+        moved
+    }
+
+    /// `nodes` cut into `n` spatial chunks: each node to the nearest of `n`
+    /// farthest-point samples of their centres (empty chunks dropped).
+    fn spatial_chunks(&self, nodes: &[usize], n: usize) -> Vec<Vec<usize>> {
+        let centres: Vec<Vec3> = nodes.iter().map(|&k| self.node_centres[k]).collect();
+        if centres.is_empty() {
+            return Vec::new();
+        }
+        let seeds = farthest_points(&centres, n.min(centres.len()));
+        let mut chunks = vec![Vec::new(); seeds.len()];
+        for (&k, c) in nodes.iter().zip(&centres) {
+            let nearest = (0..seeds.len())
+                .min_by(|&a, &b| c.distance_squared(seeds[a]).total_cmp(&c.distance_squared(seeds[b])))
+                .expect("seeds");
+            chunks[nearest].push(k);
+        }
+        chunks.retain(|c| !c.is_empty());
+        chunks
     }
 
     /// Gaussians per node.
@@ -1066,6 +1291,46 @@ impl NodeOptimizer {
     }
 }
 
+/// Add a step (rotation tangent, translation per pose) to `poses`; rotations are
+/// updated on the manifold, R <- exp(d) R.
+fn apply_step(poses: &mut [NodePose], step: &[f32]) {
+    for (pose, s) in poses.iter_mut().zip(step.chunks_exact(6)) {
+        pose.rotation = (Quat::from_scaled_axis(Vec3::new(s[0], s[1], s[2])) * pose.rotation).normalize();
+        pose.translation += Vec3::new(s[3], s[4], s[5]);
+    }
+}
+
+/// Whether two joints are the same, as the official code's `search_and_merge`
+/// judges it: same type, axes within `MERGE_AXIS_ANGLE`; revolute: axis lines
+/// within half the median part radius and angles within `MERGE_AXIS_ANGLE`;
+/// prismatic: amounts within 20 %.
+fn same_joint(ja: &crate::motion::JointEstimate, jb: &crate::motion::JointEstimate, median_radius: f64) -> bool {
+    const MERGE_AXIS_ANGLE: f64 = 0.2;
+    if ja.kind != jb.kind || ja.axis.dot(jb.axis) < MERGE_AXIS_ANGLE.cos() {
+        return false;
+    }
+    match ja.kind {
+        crate::motion::JointKind::Revolute => {
+            let line_gap = 0.5
+                * ((jb.origin - ja.origin).cross(ja.axis).length() + (ja.origin - jb.origin).cross(jb.axis).length());
+            line_gap < 0.5 * median_radius && (ja.amount - jb.amount).abs() < MERGE_AXIS_ANGLE
+        }
+        crate::motion::JointKind::Prismatic => (ja.amount - jb.amount).abs() < 0.2 * ja.amount.max(jb.amount),
+    }
+}
+
+/// Mean distance of `pts` from their centroid (0 for none).
+fn mean_radius(pts: &[DVec3]) -> f64 {
+    let c = pts.iter().copied().sum::<DVec3>() / pts.len().max(1) as f64;
+    pts.iter().map(|x| x.distance(c)).sum::<f64>() / pts.len().max(1) as f64
+}
+
+/// The median of `values` (the upper one of an even count; 0 for none).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values.get(values.len() / 2).copied().unwrap_or(0.0)
+}
+
 /// `n` farthest-point samples of `points` (deterministic: starts from the point
 /// nearest the centroid).
 fn farthest_points(points: &[Vec3], n: usize) -> Vec<Vec3> {
@@ -1176,6 +1441,103 @@ mod tests {
         assert_eq!(NodeTracker::planned_fits(&t), 30 + 12, "discovery at t = 0.4 is knot 12");
         t.discovery_time = 1.0;
         assert_eq!(NodeTracker::planned_fits(&t), 30, "no discovery before the end, nothing to refit");
+    }
+
+    #[test]
+    fn end_state_views_pull_a_part_to_its_true_end_pose() {
+        let (mut tracker, cam) = scene();
+        // Node 1 is a part, node 0 the base; the part truly ends turned and shifted.
+        let node_part = vec![0, 1];
+        let centre = tracker.node_centres[1];
+        let truth = NodePose { rotation: Quat::from_rotation_y(0.08), translation: Vec3::new(0.04, -0.03, 0.02) };
+        let parts = TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]; 2] };
+        tracker.knots = vec![vec![NodePose::IDENTITY; 2]; 2];
+        tracker.gains = vec![vec![0.0; 2]; 2];
+        let bg = Vec3::from(tracker.config.eval_background);
+        let true_set = tracker.deformed(&parts.node_poses(&tracker.node_centres, &[truth]), &[0.0; 2]);
+        let views: Vec<TrainView> = [0.0f32, 0.5, -0.5, 1.0]
+            .iter()
+            .map(|&a| {
+                let eye = Quat::from_rotation_y(a) * cam.position();
+                let camera = Camera::look_at(cam.intrinsics, eye, Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0));
+                let r = render(&true_set, &camera, &RenderOptions { background: bg, sh_degree: None });
+                TrainView { name: String::new(), camera, premultiplied: r.image.color, alpha: None, time: Some(1.0) }
+            })
+            .collect();
+        tracker.articulation = Some(parts);
+        let error = |t: &NodeTracker| {
+            let now = t.deformed(&t.knots[1], &[0.0; 2]);
+            (0..now.len()).map(|i| now.mean(i).distance(true_set.mean(i))).fold(0.0f32, f32::max)
+        };
+        let before = error(&tracker);
+        tracker.config.track.end_iterations = 400;
+        tracker.refit_end_poses(&views).expect("a part to refit");
+        let after = error(&tracker);
+        assert!(after < 0.2 * before, "largest Gaussian offset {before} -> {after}");
+    }
+
+    /// Three plates of Gaussians, one node each, tracked as three parts: two halves
+    /// of a door turning `a` and `b` radians about the z axis through the origin,
+    /// and a second door turning -1 rad about a parallel axis 1.5 m away.
+    fn three_plates(a: f32, b: f32) -> (NodeTracker, TrackedParts) {
+        let mut gs = GaussianSet::new(0);
+        let mut plate = |x0: f32| {
+            for i in 0..4 {
+                for j in 0..5 {
+                    let m = Vec3::new(x0 + 0.06 * i as f32, 0.0, 0.2 * j as f32);
+                    gs.push(m, Vec3::splat(-3.0), [1.0, 0.0, 0.0, 0.0], logit(0.9), [0.0; 3], &[]);
+                }
+            }
+        };
+        [0.05, 0.3, -1.3].into_iter().for_each(&mut plate);
+        let mut config = DynamicConfig::cpu();
+        config.track.gaussians_per_node = 1;
+        let tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
+        let part_of = |c: Vec3| {
+            if c.x < -0.5 {
+                3
+            } else if c.x < 0.27 {
+                1
+            } else {
+                2
+            }
+        };
+        let node_part: Vec<usize> = tracker.node_centres.iter().map(|&c| part_of(c)).collect();
+        let centres: Vec<Vec3> = (1..=3)
+            .map(|p| {
+                let nodes: Vec<Vec3> = tracker.node_centres.iter().copied().filter(|&c| part_of(c) == p).collect();
+                nodes.iter().copied().sum::<Vec3>() / nodes.len() as f32
+            })
+            .collect();
+        // A turn by `angle` about the z axis through `hinge`, as a pose about centre c.
+        let turn = |angle: f32, hinge: Vec3, c: Vec3| {
+            let rotation = Quat::from_rotation_z(angle);
+            NodePose { rotation, translation: rotation * (c - hinge) + hinge - c }
+        };
+        let end = vec![
+            turn(a, Vec3::ZERO, centres[0]),
+            turn(b, Vec3::ZERO, centres[1]),
+            turn(-1.0, Vec3::new(-1.5, 0.0, 0.0), centres[2]),
+        ];
+        let parts = TrackedParts { node_part, centres, poses: vec![vec![NodePose::IDENTITY; 3], end] };
+        (tracker, parts)
+    }
+
+    #[test]
+    fn fragments_of_one_door_merge_and_other_motions_stay() {
+        let (tracker, parts) = three_plates(1.0, 1.05);
+        let merged = tracker.merge_same_joint_parts(parts.clone());
+        assert_eq!(merged.centres.len(), 2, "the two halves of the door are one part");
+        let label = |x: f32| {
+            let k = tracker.node_centres.iter().position(|c| (c.x - x).abs() < 0.01).expect("a node there");
+            merged.node_part[k]
+        };
+        assert_eq!(label(0.05), label(0.3), "both halves carry one label");
+        assert_ne!(label(0.05), label(-1.3), "the second door keeps its own");
+        assert!(merged.node_part.iter().all(|&p| p >= 1), "no node falls to the base");
+        // Halves turning 1 and 0.6 rad do not share a joint: nothing merges.
+        let (tracker, parts) = three_plates(1.0, 0.6);
+        assert_eq!(tracker.merge_same_joint_parts(parts).centres.len(), 3);
     }
 
     #[test]
