@@ -32,7 +32,8 @@ pub struct Args {
 
 /// Wall time of each demo stage in units of this machine's rasterizer bench (one
 /// forward + backward of 50k Gaussians at 256 px, in ms), measured on the fridge
-/// (docs/benchmark.md, 2026-12-01: 7 / 63 / 79 / 14 s at a bench of ~58 ms):
+/// (docs/benchmark.md, 2026-12-01: 7 / 63 / 79 / 14 s at a bench of ~58 ms; stages
+/// II and III again on 2026-12-02 with the end-state refit: 91 s at 62 ms):
 /// seconds = factor x bench ms.
 const PLAN: [(&str, f64); 4] = [
     ("synthetic dataset", SYNTH_S_PER_BENCH_MS),
@@ -42,7 +43,7 @@ const PLAN: [(&str, f64); 4] = [
 ];
 const SYNTH_S_PER_BENCH_MS: f64 = 0.12;
 const STAGE1_S_PER_BENCH_MS: f64 = 1.08;
-const STAGE2_S_PER_BENCH_MS: f64 = 1.36;
+const STAGE2_S_PER_BENCH_MS: f64 = 1.47;
 const MESH_S_PER_BENCH_MS: f64 = 0.24;
 
 /// Print the plan with an estimate per stage from a quick measure of this machine.
