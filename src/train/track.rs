@@ -962,13 +962,13 @@ impl NodeTracker {
         Some(parts)
     }
 
-    /// Add the groups of base nodes that `labels` marks (p >= 1 for group p) to
-    /// `parts`, each with its centre and its pose at every knot fitted rigidly to
-    /// its nodes' tracked poses.
+    /// Add the groups of nodes that `labels` marks (p >= 1 for group p) to `parts`,
+    /// each with its centre and its pose at every knot fitted rigidly to its
+    /// nodes' tracked poses.
     fn add_fitted_parts(&self, parts: &mut TrackedParts, labels: &[usize]) {
         let first = parts.centres.len();
         for p in 1..=labels.iter().copied().max().unwrap_or(0) {
-            let nodes: Vec<usize> = (0..labels.len()).filter(|&k| labels[k] == p && parts.node_part[k] == 0).collect();
+            let nodes: Vec<usize> = (0..labels.len()).filter(|&k| labels[k] == p).collect();
             let mut in_group = vec![false; labels.len()];
             nodes.iter().for_each(|&k| in_group[k] = true);
             let members: Vec<usize> = (0..self.binding.len()).filter(|&i| in_group[self.binding[i] as usize]).collect();
