@@ -213,6 +213,17 @@ impl NodePose {
         self.rotation * (x - p) + p + self.translation
     }
 
+    /// This pose about centre `c` as a world-form rigid motion.
+    fn to_rigid(&self, c: Vec3) -> Rigid {
+        let r = glam::DMat3::from_quat(self.rotation.as_dquat());
+        Rigid { r, t: self.apply(c, c).as_dvec3() - r * c.as_dvec3() }
+    }
+
+    /// The pose about centre `c` that moves points as the world-form `m` does.
+    fn from_rigid(m: &Rigid, c: Vec3) -> Self {
+        Self { rotation: glam::DQuat::from_mat3(&m.r).as_quat().normalize(), translation: m.apply_f32(c) - c }
+    }
+
     /// Constant-velocity extrapolation: `self` one step after `before`, one more step on.
     fn extrapolate(&self, before: &Self) -> Self {
         Self {
@@ -726,16 +737,12 @@ impl NodeTracker {
         }
     }
 
-    /// Whether node k stays put over the tracked motion (SDMD's test on nodes), with
-    /// the thresholds scaled by `seen`, the part of the motion tracked so far (parts
-    /// move in proportion to time: a drawer that slides 10 cm in all has moved 4 cm
-    /// by t = 0.4).
-    fn node_is_static(&self, k: usize, seen: f32) -> bool {
-        let c = &self.config;
-        let (max_r, max_t) = (c.sdmd_max_rotation * f64::from(seen), c.sdmd_max_translation * f64::from(seen));
+    /// Whether node k stays put over the tracked motion (SDMD's test on nodes, with
+    /// the static thresholds of `c`).
+    fn node_is_static(&self, k: usize, c: &DynamicConfig) -> bool {
         self.knots.iter().all(|p| {
-            f64::from(p[k].rotation.angle_between(Quat::IDENTITY)) <= max_r
-                && f64::from(p[k].translation.length()) <= max_t
+            f64::from(p[k].rotation.angle_between(Quat::IDENTITY)) <= c.sdmd_max_rotation
+                && f64::from(p[k].translation.length()) <= c.sdmd_max_translation
         })
     }
 
@@ -756,12 +763,10 @@ impl NodeTracker {
             if members.len() < 3 || nodes.is_empty() {
                 continue;
             }
-            let motion = self.nodes_rigid_fit(&nodes, last).unwrap_or_else(|| {
-                // One or two nodes: the first node's own pose, in world form.
-                let (p, pose) = (self.node_centres[nodes[0]], last[nodes[0]]);
-                let r = glam::DMat3::from_quat(pose.rotation.as_dquat());
-                Rigid { r, t: pose.apply(p, p).as_dvec3() - r * p.as_dvec3() }
-            });
+            // One or two nodes: the first node's own pose, in world form.
+            let motion = self
+                .nodes_rigid_fit(&nodes, last)
+                .unwrap_or_else(|| last[nodes[0]].to_rigid(self.node_centres[nodes[0]]));
             let c = &self.config;
             if motion.angle() <= c.sdmd_max_rotation && motion.t.length() <= c.sdmd_max_translation {
                 members.iter().for_each(|&i| labels[i] = 0);
@@ -780,8 +785,14 @@ impl NodeTracker {
     /// t = 0 to `t_end`, with the static thresholds scaled by `t_end` (the part of
     /// the motion seen so far). Returns the groups and each node's label (0 = static).
     fn segment_nodes(&self, t_end: f32) -> (Vec<PartEstimate>, Vec<usize>) {
+        // Parts move in proportion to time: a drawer that slides 10 cm in all has
+        // moved 4 cm by t = 0.4, so the static thresholds (on nodes and on groups) scale too.
+        let mut config = self.config.clone();
+        config.sdmd_max_rotation *= f64::from(t_end);
+        config.sdmd_max_translation *= f64::from(t_end);
         let n_nodes = self.node_centres.len();
-        let moving_node: Vec<bool> = (0..n_nodes).map(|k| !self.frozen[k] && !self.node_is_static(k, t_end)).collect();
+        let moving_node: Vec<bool> =
+            (0..n_nodes).map(|k| !self.frozen[k] && !self.node_is_static(k, &config)).collect();
         let index: Vec<usize> = (0..self.gaussians.len())
             .filter(|&i| moving_node[self.binding[i] as usize] && self.gaussians.opacity(i) >= 0.1)
             .collect();
@@ -798,9 +809,6 @@ impl NodeTracker {
                     .collect()
             })
             .collect();
-        let mut config = self.config.clone();
-        config.sdmd_max_rotation *= f64::from(t_end);
-        config.sdmd_max_translation *= f64::from(t_end);
         let (found, _) = parts_from_trajectories(&config, &traj, &index);
         let found = self.merge_same_motion(found);
         for (p, part) in found.iter().enumerate() {
@@ -892,10 +900,8 @@ impl NodeTracker {
             let joints: Vec<Option<crate::motion::JointEstimate>> = (0..nodes.len())
                 .map(|p| {
                     (!nodes[p].is_empty()).then(|| {
-                        let (c, pose) = (parts.centres[p].as_dvec3(), last[p]);
-                        let r = glam::DMat3::from_quat(pose.rotation.as_dquat());
-                        let motion = Rigid { r, t: pose.apply(parts.centres[p], parts.centres[p]).as_dvec3() - r * c };
-                        extract_joint(&motion, c)
+                        let c = parts.centres[p];
+                        extract_joint(&last[p].to_rigid(c), c.as_dvec3())
                     })
                 })
                 .collect();
@@ -951,9 +957,7 @@ impl NodeTracker {
         if found.is_empty() {
             return None;
         }
-        let mut parts = TrackedParts { node_part: vec![0; node_part.len()], centres: Vec::new(), poses: Vec::new() };
-        parts.poses.resize(self.knots.len(), Vec::new());
-        self.add_fitted_parts(&mut parts, &node_part);
+        let parts = self.fitted_parts(node_part);
         tracing::info!(
             parts = found.len(),
             time = t_end,
@@ -962,26 +966,34 @@ impl NodeTracker {
         Some(parts)
     }
 
-    /// Add the groups of nodes that `labels` marks (p >= 1 for group p) to `parts`,
-    /// each with its centre and its pose at every knot fitted rigidly to its
-    /// nodes' tracked poses.
-    fn add_fitted_parts(&self, parts: &mut TrackedParts, labels: &[usize]) {
-        let first = parts.centres.len();
-        for p in 1..=labels.iter().copied().max().unwrap_or(0) {
-            let nodes: Vec<usize> = (0..labels.len()).filter(|&k| labels[k] == p).collect();
-            let mut in_group = vec![false; labels.len()];
-            nodes.iter().for_each(|&k| in_group[k] = true);
-            let members: Vec<usize> = (0..self.binding.len()).filter(|&i| in_group[self.binding[i] as usize]).collect();
-            let c = members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
-            for (knot, poses) in self.knots.iter().zip(&mut parts.poses) {
-                poses.push(self.nodes_rigid_fit(&nodes, knot).map_or(NodePose::IDENTITY, |m| {
-                    let rotation = glam::DQuat::from_mat3(&m.r).as_quat().normalize();
-                    NodePose { rotation, translation: m.apply_f32(c) - c }
-                }));
-            }
-            parts.centres.push(c);
-            nodes.iter().for_each(|&k| parts.node_part[k] = first + p);
-        }
+    /// The parts that `node_part` labels (0 = base, p = part p), each with its
+    /// centre (its Gaussians' centroid) and its pose at every knot fitted rigidly
+    /// to its nodes' tracked poses.
+    fn fitted_parts(&self, node_part: Vec<usize>) -> TrackedParts {
+        let count = node_part.iter().copied().max().unwrap_or(0);
+        let nodes: Vec<Vec<usize>> =
+            (1..=count).map(|p| (0..node_part.len()).filter(|&k| node_part[k] == p).collect()).collect();
+        let centres: Vec<Vec3> = (1..=count)
+            .map(|p| {
+                let members: Vec<usize> =
+                    (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == p).collect();
+                members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32
+            })
+            .collect();
+        let poses = self
+            .knots
+            .iter()
+            .map(|knot| {
+                nodes
+                    .iter()
+                    .zip(&centres)
+                    .map(|(n, &c)| {
+                        self.nodes_rigid_fit(n, knot).map_or(NodePose::IDENTITY, |m| NodePose::from_rigid(&m, c))
+                    })
+                    .collect()
+            })
+            .collect();
+        TrackedParts { node_part, centres, poses }
     }
 
     /// Occam's test on the parts found: a part whose nodes, given to another part's
@@ -998,12 +1010,16 @@ impl NodeTracker {
         let parts = self.merge_same_joint_parts(parts);
         let mut merged = before - parts.centres.len();
         let check = self.validation_views(frames, end_views);
+        if check.is_empty() {
+            self.set_articulation(parts.relabelled(parts.node_part.clone()));
+            return merged;
+        }
         let mut node_part = parts.node_part.clone();
-        let mut current = if check.is_empty() { 0.0 } else { self.articulated_loss(&parts, &node_part, &check) };
+        let mut current = self.articulated_loss(&parts, &node_part, &check);
         let counts = self.binding_counts();
         let size =
             |np: &[usize], p: usize| np.iter().zip(&counts).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>();
-        let mut order: Vec<usize> = if check.is_empty() { Vec::new() } else { (1..=parts.centres.len()).collect() };
+        let mut order: Vec<usize> = (1..=parts.centres.len()).collect();
         order.sort_by_key(|&p| size(&node_part, p));
         for q in order {
             let best = (0..=parts.centres.len())
