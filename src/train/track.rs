@@ -214,7 +214,7 @@ impl NodePose {
     }
 
     /// This pose about centre `c` as a world-form rigid motion.
-    fn to_rigid(&self, c: Vec3) -> Rigid {
+    fn to_rigid(self, c: Vec3) -> Rigid {
         let r = glam::DMat3::from_quat(self.rotation.as_dquat());
         Rigid { r, t: self.apply(c, c).as_dvec3() - r * c.as_dvec3() }
     }
