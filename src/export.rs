@@ -25,7 +25,7 @@ use crate::mesh::tsdf::{mesh_gaussians, object_size, TsdfConfig};
 use crate::mesh::MeshData;
 use crate::motion::{JointEstimate, JointKind};
 use crate::splat::GaussianSet;
-use crate::synth::{JointRecord, JointType};
+use crate::synth::JointRecord;
 
 /// One part of the twin.
 pub struct TwinPart<'a> {
@@ -63,10 +63,7 @@ const FORMAT: &str = "aim-articulation/1";
 fn joint_record(part: usize, j: &JointEstimate) -> JointRecord {
     JointRecord {
         part,
-        kind: match j.kind {
-            JointKind::Revolute => JointType::Revolute,
-            JointKind::Prismatic => JointType::Prismatic,
-        },
+        kind: j.kind,
         axis: j.axis.as_vec3().to_array(),
         origin: j.origin.as_vec3().to_array(),
         range: [0.0, j.amount as f32],
@@ -153,8 +150,8 @@ pub fn urdf(art: &Articulation) -> String {
     }
     for j in &art.joints {
         let (kind, lo, hi) = match j.kind {
-            JointType::Revolute => ("revolute", j.range[0], j.range[1]),
-            JointType::Prismatic => ("prismatic", j.range[0], j.range[1]),
+            JointKind::Revolute => ("revolute", j.range[0], j.range[1]),
+            JointKind::Prismatic => ("prismatic", j.range[0], j.range[1]),
         };
         let v = |a: [f32; 3]| format!("{} {} {}", a[0], a[1], a[2]);
         let _ = write!(

@@ -27,10 +27,7 @@ fn quick_mesh() -> TsdfConfig {
 
 fn joint_of(j: &aim::synth::Joint, scale: f64) -> JointEstimate {
     JointEstimate {
-        kind: match j.kind {
-            aim::synth::JointType::Revolute => JointKind::Revolute,
-            aim::synth::JointType::Prismatic => JointKind::Prismatic,
-        },
+        kind: j.kind,
         axis: j.axis.as_dvec3(),
         origin: j.origin.as_dvec3(),
         amount: scale * f64::from(j.range[1] - j.range[0]),

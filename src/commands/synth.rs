@@ -50,13 +50,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .joints
                 .iter()
                 .map(|j| match j.kind {
-                    aim::synth::JointType::Revolute => format!(
+                    aim::synth::JointKind::Revolute => format!(
                         "{} revolute {:.0}..{:.0} deg",
                         o.parts[j.part].name,
                         j.range[0].to_degrees(),
                         j.range[1].to_degrees()
                     ),
-                    aim::synth::JointType::Prismatic => {
+                    aim::synth::JointKind::Prismatic => {
                         format!("{} prismatic {}..{} m", o.parts[j.part].name, j.range[0], j.range[1])
                     }
                 })

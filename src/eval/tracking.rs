@@ -94,7 +94,7 @@ mod tests {
     use super::*;
     use crate::mesh::MeshData;
     use crate::synth::gt::PartRecord;
-    use crate::synth::{JointRecord, JointType, JointsFile};
+    use crate::synth::{JointKind, JointRecord, JointsFile};
 
     fn cube(lo: Vec3, hi: Vec3) -> MeshData {
         let mut m = MeshData::default();
@@ -110,7 +110,7 @@ mod tests {
             object: "test".into(),
             joints: vec![JointRecord {
                 part: 1,
-                kind: JointType::Prismatic,
+                kind: JointKind::Prismatic,
                 axis: [1.0, 0.0, 0.0],
                 origin: [0.0; 3],
                 range: [0.0, 0.5],

@@ -14,7 +14,7 @@ use crate::export::{read_articulation, Articulation};
 use crate::mesh::tsdf::{mesh_gaussians, object_size, TsdfConfig};
 use crate::mesh::{read_obj, MeshData};
 use crate::motion::{JointEstimate, JointKind};
-use crate::synth::{JointRecord, JointType, JointsFile};
+use crate::synth::{JointRecord, JointsFile};
 
 /// How shapes are compared.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -84,18 +84,11 @@ pub fn twin_dir(run: &Path) -> Result<PathBuf> {
     Err(Error::bad_file(run, "no twin here (neither articulation.json nor twin/articulation.json)"))
 }
 
-fn joint_kind(t: JointType) -> JointKind {
-    match t {
-        JointType::Revolute => JointKind::Revolute,
-        JointType::Prismatic => JointKind::Prismatic,
-    }
-}
-
 /// A ground-truth joint as the metrics take it.
 pub fn gt_joint(j: &JointRecord) -> GtJoint {
     GtJoint {
         part: j.part,
-        kind: joint_kind(j.kind),
+        kind: j.kind,
         axis: glam::Vec3::from(j.axis).as_dvec3(),
         origin: glam::Vec3::from(j.origin).as_dvec3(),
         range: [f64::from(j.range[0]), f64::from(j.range[1])],

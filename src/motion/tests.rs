@@ -12,7 +12,6 @@ use rand_chacha::ChaCha8Rng;
 use super::*;
 use crate::eval::{match_joints, GtJoint, PredictedJoint};
 use crate::synth::objects::object;
-use crate::synth::JointType;
 
 struct Case {
     positions: Vec<Vec<DVec3>>,
@@ -43,10 +42,7 @@ fn case(name: &str, per_part: usize, noise: f64, seed: u64) -> Case {
         .iter()
         .map(|j| GtJoint {
             part: j.part,
-            kind: match j.kind {
-                JointType::Revolute => JointKind::Revolute,
-                JointType::Prismatic => JointKind::Prismatic,
-            },
+            kind: j.kind,
             axis: j.axis.as_dvec3(),
             origin: j.origin.as_dvec3(),
             range: [f64::from(j.range[0]), f64::from(j.range[1])],

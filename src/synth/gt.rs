@@ -26,8 +26,9 @@ use std::path::Path;
 use glam::{Affine3A, Vec3};
 use serde::{Deserialize, Serialize};
 
-use super::scene::{ArticulatedObject, Joint, JointType};
+use super::scene::{ArticulatedObject, Joint};
 use crate::error::{write_atomic, Error, Result};
+use crate::motion::JointKind;
 
 /// Cylinder tessellation used for the ground-truth meshes.
 pub const GT_CYLINDER_SEGMENTS: u32 = 64;
@@ -36,7 +37,7 @@ pub const GT_CYLINDER_SEGMENTS: u32 = 64;
 pub struct JointRecord {
     pub part: usize,
     #[serde(rename = "type")]
-    pub kind: JointType,
+    pub kind: JointKind,
     pub axis: [f32; 3],
     pub origin: [f32; 3],
     pub range: [f32; 2],
@@ -163,10 +164,10 @@ struct TransInfo {
 
 fn trans_info(j: &Joint, with_part: bool) -> TransInfo {
     let (rotate, translate, kind) = match j.kind {
-        JointType::Revolute => {
+        JointKind::Revolute => {
             (LR { l: j.range[0].to_degrees(), r: j.range[1].to_degrees() }, LR { l: 0.0, r: 0.0 }, "rotate")
         }
-        JointType::Prismatic => (LR { l: 0.0, r: 0.0 }, LR { l: j.range[0], r: j.range[1] }, "translate"),
+        JointKind::Prismatic => (LR { l: 0.0, r: 0.0 }, LR { l: j.range[0], r: j.range[1] }, "translate"),
     };
     TransInfo {
         part: with_part.then_some(j.part),

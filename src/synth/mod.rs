@@ -48,10 +48,11 @@ pub mod render;
 pub mod scene;
 pub mod texture;
 
+pub use crate::motion::JointKind;
 pub use dataset::{plan_views, write_dataset, DatasetSummary, PlannedView, SynthConfig};
 pub use geometry::{Aabb, Ray, Shape};
 pub use gt::{JointRecord, JointsFile};
 pub use objects::{object, OBJECT_NAMES};
 pub use render::{camera_ray, render, RenderOptions, RenderOutput, BACKGROUND_ID};
-pub use scene::{ArticulatedObject, Hit, Joint, JointType, Part, PosedScene, Primitive};
+pub use scene::{ArticulatedObject, Hit, Joint, Part, PosedScene, Primitive};
 pub use texture::{Material, Pattern};

@@ -12,9 +12,10 @@ use std::sync::Arc;
 use glam::{Mat3, Vec2, Vec3};
 
 use super::geometry::{Shape, TriMesh};
-use super::scene::{ArticulatedObject, Joint, JointType, Part, Primitive, ViewHint};
+use super::scene::{ArticulatedObject, Joint, Part, Primitive, ViewHint};
 use super::texture::{Material, Pattern};
 use crate::error::{Error, Result};
+use crate::motion::JointKind;
 
 /// Names accepted by [`object`], in benchmark order.
 pub const OBJECT_NAMES: [&str; 11] = [
@@ -187,7 +188,7 @@ fn part(name: &str, prims: Vec<Primitive>) -> Arc<Part> {
 fn revolute(part: usize, axis: Vec3, origin: [f32; 3], range_deg: [f32; 2]) -> Joint {
     Joint {
         part,
-        kind: JointType::Revolute,
+        kind: JointKind::Revolute,
         axis: axis.normalize(),
         origin: Vec3::from(origin),
         range: range_deg.map(|d| d * PI / 180.0),
@@ -196,7 +197,7 @@ fn revolute(part: usize, axis: Vec3, origin: [f32; 3], range_deg: [f32; 2]) -> J
 }
 
 fn prismatic(part: usize, axis: Vec3, range: [f32; 2]) -> Joint {
-    Joint { part, kind: JointType::Prismatic, axis: axis.normalize(), origin: Vec3::ZERO, range, parent: 0 }
+    Joint { part, kind: JointKind::Prismatic, axis: axis.normalize(), origin: Vec3::ZERO, range, parent: 0 }
 }
 
 fn obj(name: &str, parts: Vec<Arc<Part>>, joints: Vec<Joint>, view: ViewHint) -> ArticulatedObject {

@@ -30,9 +30,10 @@ use aim_capture::calib::{CameraCalibration, CameraModel, Se3};
 use super::geometry::{Aabb, Ray, Shape};
 use super::gt::write_ground_truth;
 use super::render::Lighting;
-use super::scene::{ArticulatedObject, JointType, Part, PosedScene, Primitive};
+use super::scene::{ArticulatedObject, Part, PosedScene, Primitive};
 use super::texture::{Material, Pattern};
 use crate::error::{write_atomic, Error, Result};
+use crate::motion::JointKind;
 
 pub use aim_capture::calib::{ARIA_RGB_PARAMS, ARIA_RGB_T_DEVICE_CAMERA};
 /// Hand id in ray hits.
@@ -227,11 +228,11 @@ fn plan(obj: &ArticulatedObject, cfg: &RecordingConfig) -> Result<Script> {
             }
             let p = hit.position;
             let score = match joint.kind {
-                JointType::Revolute => {
+                JointKind::Revolute => {
                     let v = p - joint.origin;
                     (v - joint.axis * v.dot(joint.axis)).length()
                 }
-                JointType::Prismatic => -(p - c).length(),
+                JointKind::Prismatic => -(p - c).length(),
             } - 0.3 * (p.z - c.z).abs();
             if best.is_none_or(|(s, _)| score > s) {
                 best = Some((score, p));

@@ -3,11 +3,11 @@
 use std::sync::Arc;
 
 use glam::{Affine3A, Mat3, Quat, Vec3};
-use serde::{Deserialize, Serialize};
 
 use super::geometry::{Aabb, Bvh, Ray, Shape};
 use super::texture::Material;
 use crate::mesh::MeshData;
+use crate::motion::JointKind;
 
 /// A shape with its material, in its part's rest frame.
 #[derive(Clone, Debug)]
@@ -67,13 +67,6 @@ impl Part {
     }
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum JointType {
-    Revolute,
-    Prismatic,
-}
-
 /// A joint moving `part` relative to its parent (always the static base, part 0).
 ///
 /// The part's geometry is modelled at joint state 0; at state `q` a revolute part is
@@ -83,7 +76,7 @@ pub enum JointType {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Joint {
     pub part: usize,
-    pub kind: JointType,
+    pub kind: JointKind,
     /// Unit axis.
     pub axis: Vec3,
     /// A point on the axis.
@@ -101,11 +94,11 @@ impl Joint {
     /// Rest frame to world at joint state `q`.
     pub fn transform_at_state(&self, q: f32) -> Affine3A {
         match self.kind {
-            JointType::Revolute => {
+            JointKind::Revolute => {
                 let r = Affine3A::from_quat(Quat::from_axis_angle(self.axis, q));
                 Affine3A::from_translation(self.origin) * r * Affine3A::from_translation(-self.origin)
             }
-            JointType::Prismatic => Affine3A::from_translation(self.axis * q),
+            JointKind::Prismatic => Affine3A::from_translation(self.axis * q),
         }
     }
 
