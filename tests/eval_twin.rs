@@ -63,7 +63,7 @@ fn setup(label: &str, name: &str, scale: f64, extra: bool) -> (PathBuf, PathBuf)
         parts.push(TwinPart { gaussians: &sets[obj.joints[0].part], joint: Some(spurious) });
     }
     let run = root.join("run");
-    write_twin(&run.join("twin"), &parts, &quick_mesh()).expect("twin written");
+    write_twin(&run.join("twin"), &parts, &quick_mesh(), &aim::export::ExportConfig::default()).expect("twin written");
     (run, data)
 }
 

@@ -417,7 +417,7 @@ fn finish(
     let twin: Vec<TwinPart> = std::iter::once(TwinPart { gaussians: base, joint: None })
         .chain(parts.iter().zip(part_sets).map(|(p, g)| TwinPart { gaussians: g, joint: Some(p.joint) }))
         .collect();
-    write_twin(&run.out.join("twin"), &twin, run.mesh)?;
+    write_twin(&run.out.join("twin"), &twin, run.mesh, &crate::export::ExportConfig::default())?;
     for (k, g) in part_sets.iter().enumerate() {
         viz.gaussians(&format!("stage3/part_{}", k + 1), g);
     }

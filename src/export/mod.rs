@@ -9,13 +9,17 @@
 //! - `meshes/part_K.obj` and `.ply`: each part's surface at the start state,
 //!   extracted from its Gaussians by TSDF fusion ([`crate::mesh::tsdf`]), all
 //!   parts with one voxel size (a fraction of the whole twin's size);
-//! - `object.urdf`: the kinematic tree (one link per part, a revolute or
-//!   prismatic joint per moving part with its limits). The links carry no visual
-//!   geometry yet (the meshes are there for it).
+//! - `meshes/part_K_collision.obj`: each part's convex hull (its collision shape);
+//! - `object.urdf` and `object.xml` (MJCF): the kinematic tree for simulators
+//!   ([`sim`]): one link/body per part with its visual mesh, hull and inertial
+//!   properties ([`physics`]), a revolute or prismatic joint per moving part
+//!   with its observed range as limits.
 //!
 //! Every file is written atomically.
 
-use std::fmt::Write as _;
+pub mod physics;
+pub mod sim;
+
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
@@ -23,9 +27,10 @@ use serde::{Deserialize, Serialize};
 use crate::error::{write_atomic, Error, Result};
 use crate::mesh::tsdf::{mesh_gaussians, object_size, TsdfConfig};
 use crate::mesh::MeshData;
-use crate::motion::{JointEstimate, JointKind};
+use crate::motion::JointEstimate;
 use crate::splat::GaussianSet;
 use crate::synth::JointRecord;
+pub use physics::{ExportConfig, Inertial};
 
 /// One part of the twin.
 pub struct TwinPart<'a> {
@@ -47,6 +52,12 @@ pub struct PartEntry {
     /// when no surface could be extracted (too few opaque Gaussians).
     #[serde(default)]
     pub mesh: Option<String>,
+    /// The convex hull of the mesh (OBJ), relative to the file: the collision shape.
+    #[serde(default)]
+    pub collision: Option<String>,
+    /// Mass properties of the hull at `ExportConfig::density` (world frame, start state).
+    #[serde(default)]
+    pub inertial: Option<Inertial>,
 }
 
 /// articulation.json.
@@ -71,7 +82,7 @@ fn joint_record(part: usize, j: &JointEstimate) -> JointRecord {
     }
 }
 
-fn part_name(id: usize) -> String {
+pub(crate) fn part_name(id: usize) -> String {
     if id == 0 {
         "base".into()
     } else {
@@ -81,8 +92,8 @@ fn part_name(id: usize) -> String {
 
 /// Write the twin into `dir`: `parts[0]` is the base, the others move. Meshes
 /// are extracted with `mesh` (a part that gives none is logged and recorded as
-/// `mesh: None`).
-pub fn write_twin(dir: &Path, parts: &[TwinPart], mesh: &TsdfConfig) -> Result<Articulation> {
+/// `mesh: None`); the simulator files follow `export`.
+pub fn write_twin(dir: &Path, parts: &[TwinPart], mesh: &TsdfConfig, export: &ExportConfig) -> Result<Articulation> {
     if parts.first().is_none_or(|p| p.joint.is_some()) {
         return Err(Error::Other("a twin needs its base (a part without a joint) first".into()));
     }
@@ -98,7 +109,7 @@ pub fn write_twin(dir: &Path, parts: &[TwinPart], mesh: &TsdfConfig) -> Result<A
         let surface = size
             .ok_or_else(|| Error::Other("no opaque Gaussians".into()))
             .and_then(|s| mesh_gaussians(p.gaussians, s, mesh));
-        let mesh_file = match surface {
+        let mesh_file = match &surface {
             Ok(m) => {
                 let stem = format!("meshes/part_{id}");
                 let comment = format!("aim twin: part {id} ({}) at the start state", part_name(id));
@@ -110,7 +121,18 @@ pub fn write_twin(dir: &Path, parts: &[TwinPart], mesh: &TsdfConfig) -> Result<A
                 None
             }
         };
-        entries.push(PartEntry { id, name: part_name(id), gaussians: file, count: p.gaussians.len(), mesh: mesh_file });
+        entries.push(PartEntry {
+            id,
+            name: part_name(id),
+            gaussians: file,
+            count: p.gaussians.len(),
+            mesh: mesh_file,
+            collision: None,
+            inertial: None,
+        });
+        if let Ok(m) = &surface {
+            add_physics(dir, entries.last_mut().expect("pushed"), m, export)?;
+        }
         if let Some(j) = &p.joint {
             joints.push(joint_record(id, j));
         }
@@ -118,8 +140,29 @@ pub fn write_twin(dir: &Path, parts: &[TwinPart], mesh: &TsdfConfig) -> Result<A
     let art = Articulation { format: FORMAT.into(), parts: entries, joints };
     let json = serde_json::to_vec_pretty(&art).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&dir.join("articulation.json"), &json)?;
-    write_atomic(&dir.join("object.urdf"), urdf(&art).as_bytes())?;
+    write_simulator_files(dir, &art, export)?;
     Ok(art)
+}
+
+/// Compute part `entry`'s convex hull from its `mesh`, write it beside the mesh
+/// and record it with the hull's inertial properties (none for a flat hull).
+fn add_physics(dir: &Path, entry: &mut PartEntry, mesh: &MeshData, export: &ExportConfig) -> Result<()> {
+    let Some(hull) = physics::convex_hull(mesh) else {
+        tracing::warn!("twin part {}: no convex hull (flat or too few vertices)", entry.id);
+        return Ok(());
+    };
+    let file = format!("meshes/part_{}_collision.obj", entry.id);
+    let comment = format!("aim twin: convex hull of part {} ({}) at the start state", entry.id, entry.name);
+    write_atomic(&dir.join(&file), hull.to_obj(&comment).as_bytes())?;
+    entry.collision = Some(file);
+    entry.inertial = physics::inertial_of_hull(&hull, export.density);
+    Ok(())
+}
+
+/// Write `object.urdf` and `object.xml` (MJCF) of `art` into its folder `dir`.
+pub fn write_simulator_files(dir: &Path, art: &Articulation, export: &ExportConfig) -> Result<()> {
+    write_atomic(&dir.join("object.urdf"), sim::urdf(art, export).as_bytes())?;
+    write_atomic(&dir.join("object.xml"), sim::mjcf(art, export).as_bytes())
 }
 
 /// A part's mesh moved from the start state (`range[0]`) to joint state `q`
@@ -141,38 +184,10 @@ pub fn read_articulation(path: &Path) -> Result<Articulation> {
     Ok(art)
 }
 
-/// The URDF of an articulation: joint frames sit on the joint axis (URDF puts the
-/// child link's frame at the joint origin), limits from the observed range.
-pub fn urdf(art: &Articulation) -> String {
-    let mut s = String::from("<?xml version=\"1.0\"?>\n<robot name=\"aim_twin\">\n");
-    for p in &art.parts {
-        let _ = writeln!(s, "  <link name=\"{}\"/>", p.name);
-    }
-    for j in &art.joints {
-        let (kind, lo, hi) = match j.kind {
-            JointKind::Revolute => ("revolute", j.range[0], j.range[1]),
-            JointKind::Prismatic => ("prismatic", j.range[0], j.range[1]),
-        };
-        let v = |a: [f32; 3]| format!("{} {} {}", a[0], a[1], a[2]);
-        let _ = write!(
-            s,
-            "  <joint name=\"joint_{part}\" type=\"{kind}\">\n    <parent link=\"{parent}\"/>\n    <child link=\"{child}\"/>\n    \
-             <origin xyz=\"{origin}\" rpy=\"0 0 0\"/>\n    <axis xyz=\"{axis}\"/>\n    \
-             <limit lower=\"{lo}\" upper=\"{hi}\" effort=\"10\" velocity=\"1\"/>\n  </joint>\n",
-            part = j.part,
-            parent = part_name(j.parent),
-            child = part_name(j.part),
-            origin = v(j.origin),
-            axis = v(j.axis),
-        );
-    }
-    s.push_str("</robot>\n");
-    s
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::motion::JointKind;
     use glam::DVec3;
 
     #[test]
@@ -194,6 +209,7 @@ mod tests {
             &[TwinPart { gaussians: &base, joint: None }, TwinPart { gaussians: &door, joint: Some(joint) }],
             // A coarse volume: these few random Gaussians only need some mesh, fast.
             &TsdfConfig { voxel_fraction: 0.02, ..TsdfConfig::default() },
+            &ExportConfig::default(),
         )
         .expect("written");
         let back: Articulation =
@@ -205,7 +221,7 @@ mod tests {
         assert!(urdf.contains("type=\"revolute\"") && urdf.contains("<origin xyz=\"0.3 -0.3 0\""), "{urdf}");
         // The base must come first.
         let only_door = [TwinPart { gaussians: &door, joint: Some(joint) }];
-        assert!(write_twin(&dir, &only_door, &TsdfConfig::default()).is_err());
+        assert!(write_twin(&dir, &only_door, &TsdfConfig::default(), &ExportConfig::default()).is_err());
         let _ = std::fs::remove_dir_all(&dir);
     }
 
