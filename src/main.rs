@@ -41,6 +41,10 @@ enum Command {
     Eval(commands::eval::Args),
     /// A Gaussian set's surface mesh by TSDF fusion (OBJ + PLY), optionally compared with a reference.
     Mesh(commands::mesh::Args),
+    /// Render a twin with its parts at given joint states, or a turntable of its joints sweeping.
+    RenderTwin(commands::render_twin::Args),
+    /// Write a run's twin again as URDF, MJCF and/or splat PLYs.
+    Export(commands::export::Args),
 }
 
 /// Keep freed buffers in the process instead of handing them back to the OS.
@@ -80,6 +84,8 @@ fn main() -> ExitCode {
         Command::Demo(args) => commands::demo::run(args),
         Command::Eval(args) => commands::eval::run(args),
         Command::Mesh(args) => commands::mesh::run(args),
+        Command::RenderTwin(args) => commands::render_twin::run(args),
+        Command::Export(args) => commands::export::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -150,7 +150,18 @@ fn close(a: &Value, b: &[f32], tol: f64, what: &str) {
 /// Every reader sees articulation.json's joints, and MuJoCo's end state is the ground truth's.
 fn joints_agree(name: &str) {
     let root = tmp(name);
-    let (twin, gt) = ground_truth_twin(&root, name);
+    let (written, gt) = ground_truth_twin(&root, name);
+    // Checked as `aim export` writes it again elsewhere (meshes copied, hulls recomputed).
+    let twin = root.join("exported");
+    let o = Command::new(env!("CARGO_BIN_EXE_aim"))
+        .args(["--log", "warn", "export"])
+        .arg(&written)
+        .args(["--to", "all", "--out"])
+        .arg(&twin)
+        .output()
+        .expect("runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(twin.join("object.ply").is_file() && twin.join("parts/part_1.ply").is_file());
     let art = aim::export::read_articulation(&twin.join("articulation.json")).expect("articulation");
     let report = check(&twin, &gt);
     let rows = report["joints"].as_array().expect("joints");
@@ -192,4 +203,24 @@ fn the_fridge_twin_opens_in_mujoco_as_in_the_ground_truth() {
 #[test]
 fn the_storage_twin_slides_in_mujoco_as_in_the_ground_truth() {
     joints_agree("storage");
+}
+
+#[test]
+fn export_settings_with_an_unknown_key_name_the_file() {
+    let root = tmp("bad-config");
+    let (twin, _) = ground_truth_twin(&root, "storage");
+    let config = root.join("export.toml");
+    std::fs::write(&config, "density = 200.0\nefort = 5.0\n").expect("written");
+    let o = Command::new(env!("CARGO_BIN_EXE_aim"))
+        .args(["--log", "warn", "export"])
+        .arg(&twin)
+        .args(["--to", "urdf", "--out"])
+        .arg(root.join("out"))
+        .arg("--config")
+        .arg(&config)
+        .output()
+        .expect("runs");
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("export.toml") && e.contains("efort") && !e.contains("panicked"), "{e}");
+    let _ = std::fs::remove_dir_all(&root);
 }

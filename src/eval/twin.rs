@@ -3,15 +3,15 @@
 //! per matched part the Chamfer distance and 3D IoU of its mesh, the static
 //! part's, and the whole object's Chamfer distance.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
 use super::shape::{chamfer_meshes, iou_meshes, ChamferDistance};
 use super::{match_joints, ArticulationReport, GtJoint, PredictedJoint};
 use crate::error::{Error, Result};
-use crate::export::{read_articulation, Articulation};
-use crate::mesh::tsdf::{mesh_gaussians, object_size, TsdfConfig};
+use crate::export::Twin;
+use crate::mesh::tsdf::TsdfConfig;
 use crate::mesh::{read_obj, MeshData};
 use crate::motion::{JointEstimate, JointKind};
 use crate::synth::{JointRecord, JointsFile};
@@ -74,16 +74,6 @@ impl EvalReport {
     }
 }
 
-/// The twin folder of a run folder (`RUN/twin`) or the twin folder itself.
-pub fn twin_dir(run: &Path) -> Result<PathBuf> {
-    for d in [run.join("twin"), run.to_path_buf()] {
-        if d.join("articulation.json").is_file() {
-            return Ok(d);
-        }
-    }
-    Err(Error::bad_file(run, "no twin here (neither articulation.json nor twin/articulation.json)"))
-}
-
 /// A ground-truth joint as the metrics take it.
 pub fn gt_joint(j: &JointRecord) -> GtJoint {
     GtJoint {
@@ -107,32 +97,6 @@ fn predicted_joint(j: &JointRecord) -> PredictedJoint {
         rotation,
         translation,
     }
-}
-
-/// Each twin part's start-state mesh: its mesh file, or extracted from its
-/// Gaussians (read only when some part has no mesh file; a part that gives no
-/// surface is logged and has None).
-fn twin_meshes(dir: &Path, art: &Articulation, cfg: &TsdfConfig) -> Result<Vec<Option<MeshData>>> {
-    let sets = if art.parts.iter().any(|p| p.mesh.is_none()) {
-        art.parts.iter().map(|p| crate::splat::ply::read_ply(&dir.join(&p.gaussians))).collect::<Result<Vec<_>>>()?
-    } else {
-        Vec::new()
-    };
-    let size = object_size(&sets, cfg.min_opacity);
-    art.parts
-        .iter()
-        .enumerate()
-        .map(|(k, p)| match (&p.mesh, size) {
-            (Some(file), _) => read_obj(&dir.join(file)).map(Some),
-            (None, Some(size)) => {
-                tracing::info!("twin part {}: no mesh file, extracting one from {}", p.id, p.gaussians);
-                Ok(mesh_gaussians(&sets[k], size, cfg)
-                    .inspect_err(|e| tracing::warn!("twin part {}: no mesh ({e})", p.id))
-                    .ok())
-            }
-            (None, None) => Ok(None),
-        })
-        .collect()
 }
 
 /// The ground truth of a dataset: joints and start-state meshes per part id.
@@ -187,9 +151,9 @@ fn shape(
 
 /// Evaluate the twin of `run` (a run folder or its twin/ folder) against `gt`.
 pub fn evaluate_twin(run: &Path, gt: &GroundTruth, cfg: &EvalConfig) -> Result<EvalReport> {
-    let dir = twin_dir(run)?;
-    let art = read_articulation(&dir.join("articulation.json"))?;
-    let meshes = twin_meshes(&dir, &art, &cfg.mesh)?;
+    let twin = Twin::open(run)?;
+    let meshes = twin.meshes(&cfg.mesh)?;
+    let art = &twin.articulation;
     let mesh_of = |part: usize| art.parts.iter().position(|p| p.id == part).and_then(|k| meshes[k].as_ref());
 
     let pred: Vec<PredictedJoint> = art.joints.iter().map(predicted_joint).collect();

@@ -19,6 +19,7 @@
 
 pub mod physics;
 pub mod sim;
+mod twin;
 
 use std::path::Path;
 
@@ -31,6 +32,7 @@ use crate::motion::JointEstimate;
 use crate::splat::GaussianSet;
 use crate::synth::JointRecord;
 pub use physics::{ExportConfig, Inertial};
+pub use twin::{turntable, Twin};
 
 /// One part of the twin.
 pub struct TwinPart<'a> {
@@ -163,6 +165,67 @@ fn add_physics(dir: &Path, entry: &mut PartEntry, mesh: &MeshData, export: &Expo
 pub fn write_simulator_files(dir: &Path, art: &Articulation, export: &ExportConfig) -> Result<()> {
     write_atomic(&dir.join("object.urdf"), sim::urdf(art, export).as_bytes())?;
     write_atomic(&dir.join("object.xml"), sim::mjcf(art, export).as_bytes())
+}
+
+/// What `export_twin` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    /// object.urdf with its meshes and hulls.
+    Urdf,
+    /// object.xml (MJCF) with its meshes and hulls.
+    Mjcf,
+    /// The whole object's 3DGS PLY (object.ply) beside the parts' (always
+    /// written), for splat viewers.
+    Ply,
+}
+
+/// Write `twin` into `out` in `formats` with the simulator settings `cfg`
+/// (collision hulls and inertials recomputed from the meshes at its density),
+/// with an articulation.json that lists what is there. `out` may be the twin's
+/// own folder.
+pub fn export_twin(twin: &Twin, out: &Path, formats: &[Format], cfg: &ExportConfig) -> Result<Articulation> {
+    let mut art = twin.articulation.clone();
+    let copy = |file: &str| -> Result<()> {
+        let (from, to) = (twin.dir.join(file), out.join(file));
+        if from != to {
+            if let Some(parent) = to.parent() {
+                std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+            }
+            let bytes = std::fs::read(&from).map_err(|e| Error::io(&from, e))?;
+            write_atomic(&to, &bytes)?;
+        }
+        Ok(())
+    };
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    // The parts' Gaussians always: they are the twin (articulation.json lists them).
+    for p in &art.parts {
+        copy(&p.gaussians)?;
+    }
+    if formats.contains(&Format::Ply) {
+        let parts = twin.part_gaussians()?;
+        crate::splat::ply::write_ply(&out.join("object.ply"), &twin.gaussians_at(&parts, &[])?)?;
+    }
+    if formats.iter().any(|f| matches!(f, Format::Urdf | Format::Mjcf)) {
+        std::fs::create_dir_all(out.join("meshes")).map_err(|e| Error::io(out.join("meshes"), e))?;
+        let meshes = twin.meshes(&crate::mesh::tsdf::TsdfConfig::default())?;
+        for (entry, mesh) in art.parts.iter_mut().zip(&meshes) {
+            entry.collision = None;
+            entry.inertial = None;
+            if let (Some(file), Some(mesh)) = (&entry.mesh, mesh) {
+                copy(file)?;
+                add_physics(out, entry, mesh, cfg)?;
+            }
+        }
+        if formats.contains(&Format::Urdf) {
+            write_atomic(&out.join("object.urdf"), sim::urdf(&art, cfg).as_bytes())?;
+        }
+        if formats.contains(&Format::Mjcf) {
+            write_atomic(&out.join("object.xml"), sim::mjcf(&art, cfg).as_bytes())?;
+        }
+    }
+    let json = serde_json::to_vec_pretty(&art).map_err(|e| Error::Other(e.to_string()))?;
+    write_atomic(&out.join("articulation.json"), &json)?;
+    Ok(art)
 }
 
 /// A part's mesh moved from the start state (`range[0]`) to joint state `q`

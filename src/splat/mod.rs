@@ -3,9 +3,10 @@
 //! optimizer and density control treat every group the same way (rows of a
 //! fixed width).
 
-use glam::{Quat, Vec3};
+use glam::{Affine3A, Mat3, Quat, Vec3};
 
 pub mod ply;
+mod sh_rotation;
 
 /// Number of SH coefficients per colour channel for a degree (0..=3).
 pub const fn sh_coeffs(degree: u32) -> usize {
@@ -188,6 +189,20 @@ impl GaussianSet {
             let w = self.width(g);
             retain_rows(self.group_mut(g), w, keep);
         }
+    }
+
+    /// The set moved by the rigid motion `m` (a rotation and a translation): means
+    /// and orientations moved, view-dependent colour (SH) turned with them.
+    pub fn transformed(&self, m: &Affine3A) -> GaussianSet {
+        let mut g = self.clone();
+        let r = Quat::from_mat3(&Mat3::from(m.matrix3)).normalize();
+        for (mean, q) in g.means.chunks_exact_mut(3).zip(g.rotations.chunks_exact_mut(4)) {
+            mean.copy_from_slice(&m.transform_point3(Vec3::from_slice(mean)).to_array());
+            let turned = r * Quat::from_xyzw(q[1], q[2], q[3], q[0]);
+            q.copy_from_slice(&[turned.w, turned.x, turned.y, turned.z]);
+        }
+        sh_rotation::rotate_sh_rest(&mut g.sh_rest, g.sh_degree, Mat3::from_quat(r));
+        g
     }
 
     /// Check every value is finite; returns the first offending (group, gaussian index).
