@@ -204,7 +204,7 @@ fn node_tracking_recovers_a_revolute_door() {
 
 /// `aim render-twin` with every joint at the end of its range against the
 /// dataset's end-state test views (white background), and at the start state:
-/// measured 17.5-30.0 dB (mean about 22) at the end state and 4-5 dB less at the
+/// measured 17.5-30.0 dB (mean about 22) at the end state and 2.6-6.5 dB less at the
 /// start on this fridge (2026-12-02); what is missing is the inside the door
 /// reveals, which the start state never saw.
 fn twin_renders_the_end_state(data: &std::path::Path, run: &std::path::Path, root: &std::path::Path) {
