@@ -43,9 +43,15 @@ pub fn chamfer_points(a: &[Vec3], b: &[Vec3]) -> Option<ChamferDistance> {
     Some(ChamferDistance { l2_mm: 1000.0 * (ab + ba), squared_l2_x1000: 1000.0 * (ab2 + ba2) })
 }
 
-/// Chamfer distance between two meshes from `CHAMFER_SAMPLES` area-uniform samples each (seeded).
+/// Chamfer distance between two meshes from `CHAMFER_SAMPLES` area-uniform samples
+/// each (seeded) of the surface that bounds each solid
+/// ([`MeshData::sample_outer_surface`]: faces inside overlapping primitives are
+/// not surface anyone could reconstruct).
 pub fn chamfer_meshes(a: &MeshData, b: &MeshData, seed: u64) -> Option<ChamferDistance> {
-    chamfer_points(&a.sample_surface(CHAMFER_SAMPLES, seed), &b.sample_surface(CHAMFER_SAMPLES, seed ^ 0x9e37))
+    chamfer_points(
+        &a.sample_outer_surface(CHAMFER_SAMPLES, seed),
+        &b.sample_outer_surface(CHAMFER_SAMPLES, seed ^ 0x9e37),
+    )
 }
 
 /// A regular grid of voxels: voxel (i, j, k) spans `min + voxel * [i, i+1) x ...`.
@@ -166,6 +172,26 @@ mod tests {
         // Squared: 9e-6 + (9e-6 + 16e-6) / 2 = 21.5e-6 m^2, x 1000.
         assert!((cd.squared_l2_x1000 - 0.0215).abs() < 1e-7, "{cd:?}");
         assert!(chamfer_points(&a, &[]).is_none());
+    }
+
+    #[test]
+    fn faces_inside_an_overlapping_primitive_are_not_surface() {
+        // A 1 m cube with a 0.5 m cube sunk half into its top face: the small
+        // cube's lower half and the big cube's top under it are inside the solid.
+        let mut m = cube(Vec3::ZERO, 1.0);
+        let small = cube(Vec3::new(0.25, 0.25, 0.75), 0.5);
+        let offset = m.vertices.len() as u32;
+        m.vertices.extend(&small.vertices);
+        m.triangles.extend(small.triangles.iter().map(|t| t.map(|i| i + offset)));
+        let samples = m.sample_outer_surface(4000, 3);
+        assert_eq!(samples.len(), 4000);
+        let inside = |p: &Vec3, lo: Vec3, hi: Vec3| p.cmpgt(lo + 1e-4).all() && p.cmplt(hi - 1e-4).all();
+        let hidden_top =
+            |p: &Vec3| (p.z - 1.0).abs() < 1e-5 && p.x > 0.2501 && p.x < 0.7499 && p.y > 0.2501 && p.y < 0.7499;
+        assert!(samples.iter().all(|p| !inside(p, Vec3::ZERO, Vec3::ONE) && !hidden_top(p)));
+        // Visible area: 6 - 0.25 (covered top) + 0.25 (small cube's top) + 4 x 0.5 x 0.25 (its sides above) = 6.5.
+        let above = samples.iter().filter(|p| p.z > 1.0 + 1e-5).count() as f64 / samples.len() as f64;
+        assert!((above - 0.75 / 6.5).abs() < 0.02, "{above}");
     }
 
     #[test]
