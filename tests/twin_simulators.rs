@@ -255,3 +255,45 @@ fn export_settings_with_an_unknown_key_name_the_file() {
     assert!(!o.status.success() && e.contains("export.toml") && e.contains("efort") && !e.contains("panicked"), "{e}");
     let _ = std::fs::remove_dir_all(&root);
 }
+
+#[test]
+fn render_twin_draws_a_turntable_and_names_a_part_without_a_joint() {
+    let root = tmp("render");
+    let (twin, _) = ground_truth_twin(&root, "storage");
+    let camera = aim::camera::Camera::look_at(
+        aim::camera::Intrinsics::from_fov_x(64, 64, 0.8),
+        glam::Vec3::new(0.0, -3.0, 1.0),
+        glam::Vec3::ZERO,
+        glam::Vec3::Z,
+    );
+    let camera_file = root.join("camera.json");
+    std::fs::write(&camera_file, serde_json::to_vec(&aim::camera::CameraFile::from_camera(&camera)).unwrap()).unwrap();
+    let render = |extra: &[&str], out: &Path| {
+        Command::new(env!("CARGO_BIN_EXE_aim"))
+            .args(["--log", "warn", "render-twin"])
+            .arg(&twin)
+            .arg("--camera")
+            .arg(&camera_file)
+            .arg("--out")
+            .arg(out)
+            .args(extra)
+            .output()
+            .expect("runs")
+    };
+    let frames = root.join("turntable");
+    let o = render(&["--turntable", "3"], &frames);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let images: Vec<_> =
+        (0..3).map(|k| image::open(frames.join(format!("frame_{k:04}.png"))).expect("frame").to_rgb8()).collect();
+    assert_ne!(images[0], images[2], "the camera turns and the drawer slides");
+    // The drawer opened towards the camera covers more of the image than closed.
+    let covered = |img: &image::RgbImage| img.pixels().filter(|p| p.0 != [255, 255, 255]).count();
+    let (closed, open) = (root.join("closed.png"), root.join("open.png"));
+    assert!(render(&[], &closed).status.success() && render(&["--state", "1=0.35"], &open).status.success());
+    let (c, o) = (covered(&image::open(&closed).unwrap().to_rgb8()), covered(&image::open(&open).unwrap().to_rgb8()));
+    assert!(o > c, "open {o} px, closed {c} px");
+    let bad = render(&["--state", "7=1.0"], &root.join("bad.png"));
+    let e = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && e.contains("part 7 has no joint") && !e.contains("panicked"), "{e}");
+    let _ = std::fs::remove_dir_all(&root);
+}
