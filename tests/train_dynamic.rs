@@ -210,7 +210,7 @@ fn node_tracking_recovers_a_revolute_door() {
 fn twin_renders_the_end_state(data: &std::path::Path, run: &std::path::Path, root: &std::path::Path) {
     let twin = aim::export::Twin::open(run).expect("twin");
     let (_, tests) =
-        aim::train::views::load_phase_views(data, aim_capture::Phase::After, 256).expect("end-state test views");
+        aim::train::views::load_phase_views(data, aim_capture::Phase::After, 256, false).expect("end-state test views");
     assert!(!tests.is_empty());
     let states: Vec<String> = twin.articulation.joints.iter().map(|j| format!("{}={}", j.part, j.range[1])).collect();
     let white = glam::Vec3::ONE;

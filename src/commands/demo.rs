@@ -77,7 +77,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let mut train_cfg = StaticConfig::cpu();
     train_cfg.seed = args.seed;
-    let (train, test) = aim::train::views::load_phase_views(&data, aim_capture::Phase::Scan, train_cfg.resolution)?;
+    let (train, test) = aim::train::views::load_phase_views(
+        &data,
+        aim_capture::Phase::Scan,
+        train_cfg.resolution,
+        train_cfg.depth_weight > 0.0,
+    )?;
     println!("2/3 stage I (start-state 3DGS, preset cpu): {} training views, {} test views", train.len(), test.len());
     let bar = super::progress::Progress::new("stage I", train_cfg.iterations);
     let never = AtomicBool::new(false);

@@ -82,7 +82,7 @@ pub fn load_init_points(path: &Path) -> anyhow::Result<PointCloud> {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = StaticConfig::resolve(args.config.as_deref(), &args.preset, args.seed, args.iterations)?;
-    let (train, test) = load_phase_views(&args.dataset, Phase::Scan, cfg.resolution)?;
+    let (train, test) = load_phase_views(&args.dataset, Phase::Scan, cfg.resolution, cfg.depth_weight > 0.0)?;
     tracing::info!(
         train = train.len(),
         test = test.len(),

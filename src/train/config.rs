@@ -110,6 +110,12 @@ pub struct StaticConfig {
     /// Raise the active SH degree by one every this many iterations.
     pub sh_increase_interval: u32,
     pub lambda_dssim: f32,
+    /// Weight of the depth loss log(1 + |D - D_gt|) (the official code's, on the
+    /// rendered accumulated depth, metres) on pixels where the dataset's depth map is
+    /// known; 0 = RGB only (both presets: an Aria RGB camera has no depth). The
+    /// depth maps are read only when this is positive.
+    #[serde(default)]
+    pub depth_weight: f32,
     /// Composite RGBA targets over a random colour each iteration (official --random_bg_color).
     pub random_background: bool,
     /// Background for evaluation renders and targets.
@@ -135,6 +141,7 @@ impl StaticConfig {
             sh_degree: 0,
             sh_increase_interval: 1000,
             lambda_dssim: 0.2,
+            depth_weight: 0.0,
             random_background: true,
             eval_background: [1.0, 1.0, 1.0],
             checkpoint_interval: 2000,
@@ -219,6 +226,9 @@ impl StageConfig for StaticConfig {
         }
         if self.sh_degree > 3 {
             return Err(format!("sh_degree must be 0..=3, got {}", self.sh_degree));
+        }
+        if !(self.depth_weight.is_finite() && self.depth_weight >= 0.0) {
+            return Err(format!("depth_weight must be >= 0, got {}", self.depth_weight));
         }
         if !(0.0..=1.0).contains(&self.lambda_dssim) {
             return Err(format!("lambda_dssim must be in [0, 1], got {}", self.lambda_dssim));

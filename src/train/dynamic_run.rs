@@ -115,7 +115,7 @@ pub fn run_dynamic(
     control: &RunControl,
     progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
-    let (motion, test) = load_phase_views(dataset, Phase::Motion, cfg.resolution)?;
+    let (motion, test) = load_phase_views(dataset, Phase::Motion, cfg.resolution, false)?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let run = RunFiles { dataset, static_ply, out, mesh, test: &test };
     match cfg.method {
@@ -142,10 +142,10 @@ fn run_dual_field(
     mut progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
     let (dataset, out) = (run.dataset, run.out);
-    let (start, _) = load_phase_views(dataset, Phase::Scan, cfg.resolution)?;
+    let (start, _) = load_phase_views(dataset, Phase::Scan, cfg.resolution, false)?;
     // The end state is optional: a capture may stop right after the motion.
     let end = if dataset.join("end").join("transforms_train.json").exists() {
-        load_phase_views(dataset, Phase::After, cfg.resolution)?.0
+        load_phase_views(dataset, Phase::After, cfg.resolution, false)?.0
     } else {
         Vec::new()
     };
@@ -249,7 +249,7 @@ fn run_node_track(
         // The scan's cameras show where the start state's hidden volume is (for revealed content).
         let wanted = cfg.track.revealed_gaussians > 0;
         let scan: Vec<_> = if wanted && run.dataset.join("start").join("transforms_train.json").exists() {
-            load_phase_views(run.dataset, Phase::Scan, cfg.resolution)?.0.into_iter().map(|v| v.camera).collect()
+            load_phase_views(run.dataset, Phase::Scan, cfg.resolution, false)?.0.into_iter().map(|v| v.camera).collect()
         } else {
             Vec::new()
         };
@@ -293,7 +293,7 @@ fn run_node_track(
     // it, and it is part of the evidence the parts are judged on.
     let mut end_views =
         if tracker.config.track.end_iterations > 0 && run.dataset.join("end").join("transforms_train.json").exists() {
-            load_phase_views(run.dataset, Phase::After, tracker.config.resolution)?.0
+            load_phase_views(run.dataset, Phase::After, tracker.config.resolution, false)?.0
         } else {
             Vec::new()
         };

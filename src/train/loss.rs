@@ -219,6 +219,31 @@ pub fn psnr(a: &[f32], b: &[f32]) -> f32 {
 }
 
 #[cfg(test)]
+mod depth_tests {
+    use super::depth_loss_and_grad;
+
+    #[test]
+    fn depth_loss_gradient_matches_finite_differences_and_skips_unknown_pixels() {
+        let target = [1.0, 0.0, 2.5, 0.7];
+        let rendered = [1.3, 0.4, 2.0, 0.7001];
+        let (loss, grad) = depth_loss_and_grad(&rendered, &target, 2.0);
+        let expect = 2.0 / 3.0 * (0.3f32.ln_1p() + 0.5f32.ln_1p() + 0.0001f32.ln_1p());
+        assert!((loss - expect).abs() < 1e-5, "{loss} vs {expect}");
+        assert_eq!(grad[1], 0.0, "depth 0 is unknown");
+        for k in [0, 2] {
+            let h = 1e-3;
+            let mut p = rendered;
+            p[k] += h;
+            let mut m = rendered;
+            m[k] -= h;
+            let fd = (depth_loss_and_grad(&p, &target, 2.0).0 - depth_loss_and_grad(&m, &target, 2.0).0) / (2.0 * h);
+            assert!((fd - grad[k]).abs() < 1e-3, "pixel {k}: {fd} vs {}", grad[k]);
+        }
+        assert_eq!(depth_loss_and_grad(&rendered, &[0.0; 4], 1.0).0, 0.0);
+    }
+}
+
+#[cfg(test)]
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
@@ -397,4 +422,29 @@ mod tests {
         assert!((psnr(&a, &b) - 20.0).abs() < 1e-3);
         assert_eq!(psnr(&a, &a), f32::INFINITY);
     }
+}
+
+/// The official AiM code's depth loss, `weight` x mean over the pixels with a known
+/// depth (`target` > 0) of log(1 + |D - D_gt|), on the rendered accumulated depth
+/// `rendered` (metres); returns the loss and its gradient with respect to `rendered`.
+pub fn depth_loss_and_grad(rendered: &[f32], target: &[f32], weight: f32) -> (f32, Vec<f32>) {
+    let known = target.iter().filter(|&&d| d > 0.0).count();
+    if known == 0 || weight == 0.0 {
+        return (0.0, vec![0.0; rendered.len()]);
+    }
+    let scale = weight / known as f32;
+    let mut loss = 0.0;
+    let grad = rendered
+        .iter()
+        .zip(target)
+        .map(|(&d, &t)| {
+            if t <= 0.0 {
+                return 0.0;
+            }
+            let r = d - t;
+            loss += scale * r.abs().ln_1p();
+            scale * r.signum() / (1.0 + r.abs())
+        })
+        .collect();
+    (loss, grad)
 }

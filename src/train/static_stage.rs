@@ -21,7 +21,7 @@ use crate::splat::GaussianSet;
 use crate::train::config::{StageConfig, StaticConfig};
 use crate::train::density::{densify_and_prune, reset_opacity, DensifyReport, DensityStats};
 use crate::train::init::{gaussians_from_points, random_points};
-use crate::train::loss::{loss_and_grad, psnr, ssim};
+use crate::train::loss::{depth_loss_and_grad, loss_and_grad, psnr, ssim};
 use crate::train::optim::Adam;
 use crate::train::views::{camera_extent, TrainView};
 use crate::viz::Viz;
@@ -155,10 +155,16 @@ impl GaussianTrainer {
         let target = view.target(bg);
         let loss =
             loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, self.config.lambda_dssim);
-        let grads = backward(&self.gaussians, &r, &loss.grad, None, None);
+        let depth = view
+            .depth
+            .as_ref()
+            .filter(|_| self.config.depth_weight > 0.0)
+            .map(|d| depth_loss_and_grad(&r.image.depth, d, self.config.depth_weight));
+        let grads = backward(&self.gaussians, &r, &loss.grad, None, depth.as_ref().map(|(_, g)| g.as_slice()));
         let d = &self.config.density;
+        let total = loss.loss + depth.as_ref().map_or(0.0, |(l, _)| *l);
         let mut report =
-            StepReport { iteration: it, loss: loss.loss, psnr: psnr(&r.image.color, &target), ..Default::default() };
+            StepReport { iteration: it, loss: total, psnr: psnr(&r.image.color, &target), ..Default::default() };
 
         if it < d.until_iter {
             self.stats.record(&r, &grads, 0..self.gaussians.len());

@@ -1501,7 +1501,14 @@ mod tests {
                 // Over black, the colour is the premultiplied colour.
                 let r = render(&true_set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
                 let alpha = Some(r.image.alpha);
-                TrainView { name: String::new(), camera, premultiplied: r.image.color, alpha, time: Some(1.0) }
+                TrainView {
+                    name: String::new(),
+                    camera,
+                    premultiplied: r.image.color,
+                    alpha,
+                    time: Some(1.0),
+                    depth: None,
+                }
             })
             .collect();
         tracker.articulation = Some(parts);

@@ -20,6 +20,9 @@ pub struct TrainView {
     pub alpha: Option<Vec<f32>>,
     /// Time within the motion in [0, 1], when the frame has one.
     pub time: Option<f32>,
+    /// Metric z-depth per pixel (metres, 0 = unknown), when the dataset has it and
+    /// it was asked for; resized by nearest pixel (depths must not blend across edges).
+    pub depth: Option<Vec<f32>>,
 }
 
 impl TrainView {
@@ -61,12 +64,24 @@ impl TrainView {
         if !frame.world_to_camera.is_finite() || !aim_capture::frame::is_rigid(&frame.world_to_camera, 1e-3) {
             return Err(Error::bad_file(&frame.source, "camera pose is not an invertible rigid transform"));
         }
+        let depth = frame.depth.as_ref().map(|d| {
+            let (sw, sh) = (k.width as usize, k.height as usize);
+            (0..h as usize)
+                .flat_map(|y| {
+                    let sy = ((y as f64 + 0.5) * sh as f64 / f64::from(h)) as usize;
+                    (0..w as usize)
+                        .map(move |x| (sy.min(sh - 1), ((x as f64 + 0.5) * sw as f64 / f64::from(w)) as usize))
+                })
+                .map(|(sy, sx)| d[sy * sw + sx.min(sw - 1)])
+                .collect()
+        });
         Ok(Self {
             name: frame.source.clone(),
             camera: Camera::new(k.scaled(w, h), frame.world_to_camera),
             premultiplied,
             alpha: (!opaque).then_some(alpha),
             time: frame.motion_time,
+            depth,
         })
     }
 
@@ -116,10 +131,12 @@ pub fn camera_extent(views: &[TrainView]) -> f32 {
 /// Load the train and test views of one phase folder of an AiM-layout dataset
 /// (`start` for Phase::Scan, `motion` for Phase::Motion, `end` for Phase::After),
 /// checking that the training images agree in size; no test list = no test views.
+/// With `depth`, the depth maps the dataset lists are read too.
 pub fn load_phase_views(
     dataset: &std::path::Path,
     phase: aim_capture::Phase,
     width: u32,
+    depth: bool,
 ) -> Result<(Vec<TrainView>, Vec<TrainView>)> {
     use aim_capture::dataset::{load_aim_transforms, LoadOptions};
     let folder = match phase {
@@ -127,7 +144,7 @@ pub fn load_phase_views(
         aim_capture::Phase::Motion => "motion",
         aim_capture::Phase::After => "end",
     };
-    let opts = LoadOptions { depth: false };
+    let opts = LoadOptions { depth };
     let train_path = dataset.join(folder).join("transforms_train.json");
     let frames = load_aim_transforms(&train_path, phase, &opts)?;
     let Some(first) = frames.first() else {
