@@ -115,7 +115,7 @@ pub fn run_dynamic(
     control: &RunControl,
     progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
-    let (motion, test) = load_phase_views(dataset, Phase::Motion, cfg.resolution, false)?;
+    let (motion, test) = load_phase_views(dataset, Phase::Motion, cfg.resolution, cfg.track.depth_weight > 0.0)?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let run = RunFiles { dataset, static_ply, out, mesh, test: &test };
     match cfg.method {

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::dynamic_stage::{parts_from_trajectories, DynamicConfig, PartEstimate};
-use super::loss::{loss_and_grad, psnr};
+use super::loss::{depth_loss_and_grad, loss_and_grad, psnr};
 use super::optim::{BETA1, BETA2};
 use super::revealed::RevealedContent;
 use super::static_stage::background_for;
@@ -118,6 +118,10 @@ pub struct TrackConfig {
     /// storage drawer, whose hidden body the static set explains as not moving
     /// (docs/training.md).
     pub revealed_gaussians: usize,
+    /// Weight of the depth loss log(1 + |D - D_gt|) on the motion frames (as stage
+    /// I's `depth_weight`), where the dataset has depth maps; 0 = RGB only (the
+    /// default: an Aria RGB camera has no depth).
+    pub depth_weight: f32,
 }
 
 impl Default for TrackConfig {
@@ -146,6 +150,7 @@ impl Default for TrackConfig {
             freeze_rotation: 0.02,
             revealed_gaussians: 0,
             refit_from_start: false,
+            depth_weight: 0.0,
         }
     }
 }
@@ -178,6 +183,9 @@ impl TrackConfig {
         }
         if !(self.lr_gain.is_finite() && self.lr_gain >= 0.0) {
             return Err(format!("track.lr_gain must be >= 0, got {}", self.lr_gain));
+        }
+        if !(self.depth_weight.is_finite() && self.depth_weight >= 0.0) {
+            return Err(format!("track.depth_weight must be >= 0, got {}", self.depth_weight));
         }
         if !(self.end_alpha_weight.is_finite() && self.end_alpha_weight >= 0.0) {
             return Err(format!("track.end_alpha_weight must be >= 0, got {}", self.end_alpha_weight));
@@ -585,7 +593,12 @@ impl NodeTracker {
             let target = view.target(bg);
             let (w, h) = (r.width as usize, r.height as usize);
             let l = loss_and_grad(&r.image.color, &target, w, h, c.lambda_dssim);
-            let grads = backward(&g, &r, &l.grad, None, None);
+            let depth = view
+                .depth
+                .as_ref()
+                .filter(|_| c.track.depth_weight > 0.0)
+                .map(|d| depth_loss_and_grad(&r.image.depth, d, c.track.depth_weight).1);
+            let grads = backward(&g, &r, &l.grad, None, depth.as_deref());
             let tracked = self.gaussians.len();
             if articulated && !self.revealed.is_empty() {
                 self.revealed.step(&grads.params.rows(tracked..g.len()));
