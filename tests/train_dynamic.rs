@@ -92,6 +92,31 @@ fn train_dynamic_runs_from_a_stage_one_result_and_writes_its_outputs() {
     assert_eq!(String::from_utf8_lossy(&check.stdout).trim(), format!("{} {}", art.parts.len(), art.joints.len()));
     aim::splat::ply::read_ply(&root.join("d").join("moving.ply")).expect("moving set reloads");
 
+    // The paper's dual field refuses to resume a checkpoint of another configuration.
+    let paper = |iterations: u32, resume: bool| {
+        let config = root.join(format!("paper_{iterations}.toml"));
+        let toml = format!("preset = \"paper\"\niterations = {iterations}\nwarmup_iterations = 1\nstatic_opacity_only_iterations = 2\ntime_curriculum_iterations = 0\n");
+        std::fs::write(&config, toml).expect("config written");
+        let mut c = aim();
+        c.arg("train-dynamic")
+            .arg(&data)
+            .arg("--static")
+            .arg(root.join("s").join("static.ply"))
+            .arg("--out")
+            .arg(root.join("p"))
+            .arg("--config")
+            .arg(&config);
+        if resume {
+            c.arg("--resume");
+        }
+        c.output().expect("runs")
+    };
+    let first = paper(4, false);
+    assert!(first.status.success(), "{}", String::from_utf8_lossy(&first.stderr));
+    let other = paper(6, true);
+    let e = String::from_utf8_lossy(&other.stderr);
+    assert!(!other.status.success() && e.contains("another configuration") && !e.contains("panicked"), "{e}");
+
     // A missing static file is named.
     let bad = aim()
         .arg("train-dynamic")

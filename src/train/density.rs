@@ -180,6 +180,9 @@ fn copy_row(src: &GaussianSet, i: usize, dst: &mut GaussianSet) {
     }
 }
 
+/// Opacity cap applied by the periodic reset, in both stages (3DGS value).
+pub const OPACITY_RESET_VALUE: f32 = 0.01;
+
 /// 3DGS opacity reset: clamp every opacity to at most `value` and restart the
 /// opacity moments, so Gaussians that are not needed fade and get pruned.
 pub fn reset_opacity(gs: &mut GaussianSet, adam: &mut Adam, value: f32) {

@@ -154,7 +154,7 @@ fn run_dual_field(
     let (mut trainer, elapsed_before) = if control.resume && checkpoint.exists() {
         let (t, elapsed) = load_checkpoint(&checkpoint)?;
         if t.config != cfg {
-            tracing::warn!("{}: trained with another configuration; continuing with its own", checkpoint.display());
+            return Err(Error::bad_file(&checkpoint, "written with another configuration; rerun without --resume"));
         }
         tracing::info!(iteration = t.iteration, "resuming from {}", checkpoint.display());
         (t, elapsed)

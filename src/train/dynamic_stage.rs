@@ -18,7 +18,7 @@ use crate::motion::{
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::{sigmoid, GaussianSet};
 use crate::train::config::{DensityConfig, LrConfig, Preset, StageConfig};
-use crate::train::density::{densify_and_prune, remove, reset_opacity, DensityStats};
+use crate::train::density::{densify_and_prune, remove, reset_opacity, DensityStats, OPACITY_RESET_VALUE};
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{loss_and_grad, psnr};
 use crate::train::optim::{Adam, AdamBuffer, ExponLr, LearningRates};
@@ -231,6 +231,15 @@ impl StageConfig for DynamicConfig {
         }
         if self.density.interval == 0 {
             return Err("density.interval must be at least 1".into());
+        }
+        // The view schedule runs the time curriculum, then (without one) the
+        // opacity-only phase: a curriculum that ends inside that phase has no schedule.
+        if self.time_curriculum_iterations > 0 && self.time_curriculum_iterations < self.static_opacity_only_iterations
+        {
+            return Err(format!(
+                "time_curriculum_iterations ({}) must be 0 or at least static_opacity_only_iterations ({})",
+                self.time_curriculum_iterations, self.static_opacity_only_iterations
+            ));
         }
         self.track.validate()?;
         for i in 0..3 {
@@ -457,6 +466,7 @@ pub(crate) fn parts_from_trajectories(
 impl DualTrainer {
     /// Start from a trained static set.
     pub fn new(config: DynamicConfig, static_gaussians: GaussianSet, views: &StageTwoViews) -> Result<Self> {
+        config.validate().map_err(Error::Config)?;
         if config.single_deformable_set {
             let sh_degree = static_gaussians.sh_degree;
             return Ok(Self::from_sets(config, GaussianSet::new(sh_degree), static_gaussians, views));
@@ -498,7 +508,9 @@ impl DualTrainer {
         let net = DeformNet::new(config.deform.clone(), config.seed);
         let net_adam = AdamBuffer::zeros(net.parameter_count());
         Self {
-            extent: camera_extent(&views.motion),
+            // The scene's extent from the scan, as stage I takes it (the motion video
+            // circles closer or farther); the motion cameras when there is no scan.
+            extent: camera_extent(if views.start.is_empty() { &views.motion } else { &views.start }),
             static_set: OptimizedSet::new(static_set),
             moving: OptimizedSet::new(moving),
             net,
@@ -645,9 +657,10 @@ impl DualTrainer {
                 let s = &mut self.static_set;
                 densify_and_prune(&mut s.gaussians, &mut s.adam, &mut s.stats, &params, &mut rng);
             }
-            if d.opacity_reset_interval > 0 && it.is_multiple_of(d.opacity_reset_interval) {
-                reset_opacity(&mut self.moving.gaussians, &mut self.moving.adam, 0.01);
-            }
+        }
+        // As stage I: on its own schedule, not only on densification iterations.
+        if it < d.until_iter && d.opacity_reset_interval > 0 && it.is_multiple_of(d.opacity_reset_interval) {
+            reset_opacity(&mut self.moving.gaussians, &mut self.moving.adam, OPACITY_RESET_VALUE);
         }
         // Online pruning of the static set while only its opacities train.
         if opacity_only && it.is_multiple_of(d.interval) {
@@ -855,6 +868,16 @@ mod tests {
         assert_eq!(t.static_set.adam.len(), t.static_set.gaussians.len());
         assert_eq!(t.moving.stats.len(), t.moving.gaussians.len());
         assert!(t.analyse().0.is_empty(), "no moving parts remain");
+    }
+
+    #[test]
+    fn a_curriculum_ending_inside_the_opacity_only_phase_is_refused() {
+        let views = motion_views("curriculum");
+        let mut c = small_config();
+        c.time_curriculum_iterations = 10;
+        c.static_opacity_only_iterations = 30;
+        let e = DualTrainer::new(c, static_set(), &views).err().expect("refused").to_string();
+        assert!(e.contains("time_curriculum_iterations"), "{e}");
     }
 
     #[test]

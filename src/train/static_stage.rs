@@ -19,15 +19,12 @@ use crate::render::{backward, render, RenderOptions};
 use crate::splat::ply::PointCloud;
 use crate::splat::GaussianSet;
 use crate::train::config::{StageConfig, StaticConfig};
-use crate::train::density::{densify_and_prune, reset_opacity, DensifyReport, DensityStats};
+use crate::train::density::{densify_and_prune, reset_opacity, DensifyReport, DensityStats, OPACITY_RESET_VALUE};
 use crate::train::init::{gaussians_from_points, random_points};
 use crate::train::loss::{depth_loss_and_grad, loss_and_grad, psnr, ssim};
 use crate::train::optim::Adam;
 use crate::train::views::{camera_extent, TrainView};
 use crate::viz::Viz;
-
-/// Opacity cap applied by the periodic reset (3DGS value).
-const OPACITY_RESET_VALUE: f32 = 0.01;
 
 /// What one iteration did.
 #[derive(Clone, Debug, Default)]
