@@ -207,3 +207,98 @@ pub fn deform_bench(shapes: &[(usize, usize)], counts: &[usize], repeats: usize)
     }
     rows
 }
+
+/// What a benchmark ran on: numbers from different machines only compare with
+/// these beside them (the rasterizer's speed differs between machines more than
+/// their raw compute does, docs/benchmark.md).
+#[derive(Debug, Serialize)]
+pub struct MachineInfo {
+    /// /proc/cpuinfo's model name, where there is one.
+    pub cpu: Option<String>,
+    /// SIMD features the CPU reports at run time.
+    pub cpu_features: Vec<&'static str>,
+    /// SIMD features this binary was compiled to use (`-C target-cpu` / `target-feature`);
+    /// the rasterizer's 8-lane kernels (`wide::f32x8`) use what is compiled in.
+    pub compiled_features: Vec<&'static str>,
+    /// How the 8-lane kernels execute with the compiled features.
+    pub kernel_set: &'static str,
+    pub threads: usize,
+}
+
+impl MachineInfo {
+    pub fn detect() -> Self {
+        let cpu = std::fs::read_to_string("/proc/cpuinfo").ok().and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_string())
+        });
+        Self {
+            cpu,
+            cpu_features: runtime_features(),
+            compiled_features: compiled_features(),
+            kernel_set: if cfg!(target_feature = "avx") {
+                "8 lanes in one 256-bit register (AVX)"
+            } else if cfg!(any(target_feature = "sse2", target_feature = "neon")) {
+                "8 lanes as two 128-bit registers (SSE2 / NEON)"
+            } else {
+                "8 lanes in scalar code"
+            },
+            threads: rayon::current_num_threads(),
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+fn runtime_features() -> Vec<&'static str> {
+    let mut f = Vec::new();
+    macro_rules! check {
+        ($($name:tt),*) => { $( if std::arch::is_x86_feature_detected!($name) { f.push($name); } )* };
+    }
+    check!("sse4.2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl");
+    f
+}
+
+#[cfg(target_arch = "aarch64")]
+fn runtime_features() -> Vec<&'static str> {
+    if std::arch::is_aarch64_feature_detected!("neon") {
+        vec!["neon"]
+    } else {
+        Vec::new()
+    }
+}
+
+#[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
+fn runtime_features() -> Vec<&'static str> {
+    Vec::new()
+}
+
+fn compiled_features() -> Vec<&'static str> {
+    [
+        ("sse4.2", cfg!(target_feature = "sse4.2")),
+        ("avx", cfg!(target_feature = "avx")),
+        ("avx2", cfg!(target_feature = "avx2")),
+        ("fma", cfg!(target_feature = "fma")),
+        ("avx512f", cfg!(target_feature = "avx512f")),
+        ("neon", cfg!(target_feature = "neon")),
+    ]
+    .into_iter()
+    .filter_map(|(name, on)| on.then_some(name))
+    .collect()
+}
+
+#[cfg(test)]
+mod machine_tests {
+    use super::MachineInfo;
+
+    #[test]
+    fn the_binary_uses_only_features_the_cpu_has() {
+        let m = MachineInfo::detect();
+        assert!(m.threads >= 1);
+        for f in &m.compiled_features {
+            assert!(m.cpu_features.contains(f), "compiled for {f}, which the CPU does not report: {m:?}");
+        }
+        let json = serde_json::to_value(&m).expect("serialises");
+        assert!(json["kernel_set"].as_str().is_some_and(|k| k.contains("8 lanes")), "{json}");
+    }
+}

@@ -156,8 +156,12 @@ pub fn run(b: Bench) -> anyhow::Result<()> {
         }
         Bench::Deform { json, repeats, counts } => {
             let rows = aim::bench::deform_bench(&[(8, 256), (4, 128)], &counts, repeats.max(1));
-            let report =
-                serde_json::json!({ "bench": "deform", "threads": rayon::current_num_threads(), "rows": rows });
+            let report = serde_json::json!({
+                "bench": "deform",
+                "threads": rayon::current_num_threads(),
+                "machine": aim::bench::MachineInfo::detect(),
+                "rows": rows,
+            });
             print_report(&report, json)?;
         }
         Bench::Ingest { json, recording, frames, threads } => {
@@ -182,6 +186,7 @@ pub fn run(b: Bench) -> anyhow::Result<()> {
             let report = serde_json::json!({
                 "bench": "render",
                 "threads": rayon::current_num_threads(),
+                "machine": aim::bench::MachineInfo::detect(),
                 "rows": rows,
             });
             print_report(&report, json)?;
