@@ -207,13 +207,14 @@ pub fn export_twin(twin: &Twin, out: &Path, formats: &[Format], cfg: &ExportConf
     }
     if formats.iter().any(|f| matches!(f, Format::Urdf | Format::Mjcf)) {
         std::fs::create_dir_all(out.join("meshes")).map_err(|e| Error::io(out.join("meshes"), e))?;
-        let meshes = twin.meshes(&crate::mesh::tsdf::TsdfConfig::default())?;
-        for (entry, mesh) in art.parts.iter_mut().zip(&meshes) {
+        for entry in &mut art.parts {
             entry.collision = None;
             entry.inertial = None;
-            if let (Some(file), Some(mesh)) = (&entry.mesh, mesh) {
-                copy(file)?;
-                add_physics(out, entry, mesh, cfg)?;
+            // A part without a mesh file has no visual or collision geometry to export.
+            if let Some(file) = entry.mesh.clone() {
+                let mesh = crate::mesh::read_obj(&twin.dir.join(&file))?;
+                copy(&file)?;
+                add_physics(out, entry, &mesh, cfg)?;
             }
         }
         if formats.contains(&Format::Urdf) {
