@@ -140,10 +140,15 @@ pub fn write_twin(dir: &Path, parts: &[TwinPart], mesh: &TsdfConfig, export: &Ex
         }
     }
     let art = Articulation { format: FORMAT.into(), parts: entries, joints };
-    let json = serde_json::to_vec_pretty(&art).map_err(|e| Error::Other(e.to_string()))?;
-    write_atomic(&dir.join("articulation.json"), &json)?;
+    write_articulation(dir, &art)?;
     write_simulator_files(dir, &art, export)?;
     Ok(art)
+}
+
+/// Write `art` as `dir`/articulation.json.
+fn write_articulation(dir: &Path, art: &Articulation) -> Result<()> {
+    let json = serde_json::to_vec_pretty(art).map_err(|e| Error::Other(e.to_string()))?;
+    write_atomic(&dir.join("articulation.json"), &json)
 }
 
 /// Compute part `entry`'s convex hull from its `mesh`, write it beside the mesh
@@ -224,16 +229,14 @@ pub fn export_twin(twin: &Twin, out: &Path, formats: &[Format], cfg: &ExportConf
             write_atomic(&out.join("object.xml"), sim::mjcf(&art, cfg).as_bytes())?;
         }
     }
-    let json = serde_json::to_vec_pretty(&art).map_err(|e| Error::Other(e.to_string()))?;
-    write_atomic(&out.join("articulation.json"), &json)?;
+    write_articulation(out, &art)?;
     Ok(art)
 }
 
 /// A part's mesh moved from the start state (`range[0]`) to joint state `q`
 /// (radians or metres) by its joint.
 pub fn mesh_at_state(mesh: &MeshData, joint: &JointRecord, q: f32) -> MeshData {
-    let j = joint.to_joint();
-    mesh.transformed(&(j.transform_at_state(q) * j.transform_at_state(j.range[0]).inverse()))
+    mesh.transformed(&joint.motion_to_state(q))
 }
 
 /// Read a twin's articulation.json and check it.

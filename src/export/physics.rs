@@ -52,9 +52,14 @@ pub struct Inertial {
     pub inertia: [f32; 6],
 }
 
+/// A mesh's vertices as parry's points.
+fn points(mesh: &MeshData) -> Vec<Point<f32>> {
+    mesh.vertices.iter().map(|v| Point::new(v.x, v.y, v.z)).collect()
+}
+
 /// The convex hull of a mesh's vertices (None for fewer than four points not in a plane).
 pub fn convex_hull(mesh: &MeshData) -> Option<MeshData> {
-    let points: Vec<Point<f32>> = mesh.vertices.iter().map(|v| Point::new(v.x, v.y, v.z)).collect();
+    let points = points(mesh);
     if points.len() < 4 {
         return None;
     }
@@ -66,8 +71,7 @@ pub fn convex_hull(mesh: &MeshData) -> Option<MeshData> {
 /// Mass, centre of mass and inertia of a closed convex mesh (`convex_hull`'s)
 /// filled at `density`; None for a hull without volume.
 pub fn inertial_of_hull(hull: &MeshData, density: f32) -> Option<Inertial> {
-    let points: Vec<Point<f32>> = hull.vertices.iter().map(|v| Point::new(v.x, v.y, v.z)).collect();
-    let m = MassProperties::from_convex_polyhedron(density, &points, &hull.triangles);
+    let m = MassProperties::from_convex_polyhedron(density, &points(hull), &hull.triangles);
     let mass = m.mass();
     if !(mass.is_finite() && mass > 0.0) {
         return None;
@@ -86,31 +90,11 @@ pub fn inertial_of_hull(hull: &MeshData, density: f32) -> Option<Inertial> {
 mod tests {
     use super::*;
 
-    /// A closed axis-aligned box mesh (12 triangles, outward normals).
+    /// A closed axis-aligned box mesh.
     fn cuboid(min: Vec3, max: Vec3) -> MeshData {
-        let c = |i: u32| {
-            Vec3::new(
-                if i & 1 == 0 { min.x } else { max.x },
-                if i & 2 == 0 { min.y } else { max.y },
-                if i & 4 == 0 { min.z } else { max.z },
-            )
-        };
-        let vertices = (0..8).map(c).collect();
-        let triangles = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
-        MeshData { vertices, triangles }
+        let mut m = MeshData::default();
+        crate::synth::Shape::cuboid(min, max).tessellate(1, &mut m);
+        m
     }
 
     #[test]

@@ -78,10 +78,7 @@ impl Twin {
                 None => out.extend_from(g),
                 Some(j) => {
                     let q = states.iter().rev().find(|(id, _)| *id == p.id).map_or(j.range[0], |s| s.1);
-                    let joint = j.to_joint();
-                    out.extend_from(
-                        &g.transformed(&(joint.transform_at_state(q) * joint.transform_at_state(j.range[0]).inverse())),
-                    );
+                    out.extend_from(&g.transformed(&j.motion_to_state(q)));
                 }
             }
         }

@@ -88,8 +88,14 @@ impl JointRecord {
 
     /// Motion of the part from its start state (t = 0) to time `t`, in world coordinates.
     pub fn motion_from_start(&self, t: f32) -> Affine3A {
+        self.motion_to_state(self.to_joint().state(t))
+    }
+
+    /// Motion of the part from its start state (`range[0]`) to joint state `q`
+    /// (radians or metres), in world coordinates.
+    pub fn motion_to_state(&self, q: f32) -> Affine3A {
         let j = self.to_joint();
-        j.transform(t) * j.transform(0.0).inverse()
+        j.transform_at_state(q) * j.transform_at_state(self.range[0]).inverse()
     }
 }
 

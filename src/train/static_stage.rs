@@ -21,7 +21,7 @@ use crate::splat::GaussianSet;
 use crate::train::config::{StageConfig, StaticConfig};
 use crate::train::density::{densify_and_prune, reset_opacity, DensifyReport, DensityStats, OPACITY_RESET_VALUE};
 use crate::train::init::{gaussians_from_points, random_points};
-use crate::train::loss::{depth_loss_and_grad, loss_and_grad, psnr, ssim};
+use crate::train::loss::{loss_and_grad, psnr, ssim};
 use crate::train::optim::Adam;
 use crate::train::views::{camera_extent, TrainView};
 use crate::viz::Viz;
@@ -152,11 +152,7 @@ impl GaussianTrainer {
         let target = view.target(bg);
         let loss =
             loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, self.config.lambda_dssim);
-        let depth = view
-            .depth
-            .as_ref()
-            .filter(|_| self.config.depth_weight > 0.0)
-            .map(|d| depth_loss_and_grad(&r.image.depth, d, self.config.depth_weight));
+        let depth = view.depth_loss(&r.image.depth, self.config.depth_weight);
         let grads = backward(&self.gaussians, &r, &loss.grad, None, depth.as_ref().map(|(_, g)| g.as_slice()));
         let d = &self.config.density;
         let total = loss.loss + depth.as_ref().map_or(0.0, |(l, _)| *l);

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::dynamic_stage::{parts_from_trajectories, DynamicConfig, PartEstimate};
-use super::loss::{depth_loss_and_grad, loss_and_grad, psnr};
+use super::loss::{loss_and_grad, psnr};
 use super::optim::{BETA1, BETA2};
 use super::revealed::RevealedContent;
 use super::static_stage::background_for;
@@ -600,11 +600,7 @@ impl NodeTracker {
             let target = view.target(bg);
             let (w, h) = (r.width as usize, r.height as usize);
             let l = loss_and_grad(&r.image.color, &target, w, h, c.lambda_dssim);
-            let depth = view
-                .depth
-                .as_ref()
-                .filter(|_| c.track.depth_weight > 0.0)
-                .map(|d| depth_loss_and_grad(&r.image.depth, d, c.track.depth_weight).1);
+            let depth = view.depth_loss(&r.image.depth, c.track.depth_weight).map(|(_, grad)| grad);
             let grads = backward(&g, &r, &l.grad, None, depth.as_deref());
             let tracked = self.gaussians.len();
             if articulated && !self.revealed.is_empty() {
@@ -1084,13 +1080,10 @@ impl NodeTracker {
     fn validation_views<'a>(&self, frames: &'a [TrainView], end_views: &'a [TrainView]) -> Vec<&'a TrainView> {
         let t_end = self.knot_time(self.knots.len() - 1);
         let seen: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t <= t_end + 1e-6)).collect();
-        let spread = |views: &[&'a TrainView]| -> Vec<&'a TrainView> {
-            let n = self.config.track.validation_frames.min(views.len());
-            (0..n).map(|i| views[(i * (views.len() - 1)) / (n - 1).max(1)]).collect()
-        };
-        let mut check = spread(&seen);
+        let n = self.config.track.validation_frames;
+        let mut check = evenly_spread(&seen, n);
         if t_end >= 1.0 - 1e-6 {
-            check.extend(spread(&end_views.iter().collect::<Vec<_>>()));
+            check.extend(evenly_spread(&end_views.iter().collect::<Vec<_>>(), n));
         }
         check
     }
@@ -1151,8 +1144,7 @@ impl NodeTracker {
         if step <= 0.0 || end_views.is_empty() {
             return 0;
         }
-        let n = VIEWS.min(end_views.len());
-        let check: Vec<&TrainView> = (0..n).map(|i| &end_views[(i * (end_views.len() - 1)) / (n - 1).max(1)]).collect();
+        let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
         let last = parts.poses.len() - 1;
         let means: Vec<Vec3> = (0..self.gaussians.len()).map(|i| self.gaussians.mean(i)).collect();
         let principal = principal_axes(&means);
@@ -1475,6 +1467,12 @@ fn same_joint(ja: &crate::motion::JointEstimate, jb: &crate::motion::JointEstima
 }
 
 /// Mean distance of `pts` from their centroid (0 for none).
+/// At most `n` of `items`, evenly spread over them (the first and the last included).
+fn evenly_spread<'a, T>(items: &[&'a T], n: usize) -> Vec<&'a T> {
+    let n = n.min(items.len());
+    (0..n).map(|i| items[(i * (items.len() - 1)) / (n - 1).max(1)]).collect()
+}
+
 /// The principal axes (unit, largest spread first) of points.
 fn principal_axes(points: &[Vec3]) -> [Vec3; 3] {
     let mean = points.iter().copied().sum::<Vec3>() / points.len().max(1) as f32;

@@ -93,6 +93,14 @@ impl TrainView {
         self.camera.height()
     }
 
+    /// The depth loss of a render's accumulated depth `rendered` against this
+    /// view's depth map at `weight` ([`crate::train::loss::depth_loss_and_grad`]):
+    /// the loss and its gradient, None without a depth map or at weight 0.
+    pub fn depth_loss(&self, rendered: &[f32], weight: f32) -> Option<(f32, Vec<f32>)> {
+        let target = self.depth.as_ref().filter(|_| weight > 0.0)?;
+        Some(crate::train::loss::depth_loss_and_grad(rendered, target, weight))
+    }
+
     /// The target composited over `background`.
     pub fn target(&self, background: Vec3) -> Vec<f32> {
         match &self.alpha {
