@@ -84,11 +84,13 @@ pub struct TrackConfig {
     /// the default: the outline of an open drawer includes its sides, which the start
     /// state lacks, and the storage unit's seed 1 went 0.38 -> 2.18 deg (docs/training.md).
     pub end_alpha_weight: f32,
-    /// Before the end-state refit, search each part's end pose globally: revolute
-    /// hypotheses about the object's principal axes and the part's own axis through
-    /// the edges of the part's box (every `search_step` radians), prismatic ones along
-    /// the same axes; the best on a few end-state views is refitted locally and kept
-    /// when it explains the end state better than the tracked pose. Off = 0.
+    /// After the end-state refit and the merges, search each part's end pose
+    /// globally: revolute hypotheses about the object's principal axes and the
+    /// part's own axis through the edges of the part's box (every `search_step`
+    /// radians), prismatic ones along the same axes; the best few on a few end-state
+    /// views are refitted locally and kept when one explains the end state better,
+    /// by more than `merge_tolerance`, than the tracked pose refitted the same way.
+    /// Off = 0.
     pub search_step: f32,
     /// Static-during-motion detection on nodes: from this many fitted segments on,
     /// a node that has stayed within `freeze_translation` (times the object size)
@@ -151,7 +153,7 @@ impl Default for TrackConfig {
             clean_time: 0.6,
             end_iterations: 300,
             end_alpha_weight: 0.0,
-            search_step: 0.0,
+            search_step: std::f32::consts::PI / 12.0,
             freeze_after_segments: 6,
             freeze_translation: 0.01,
             freeze_rotation: 0.02,
@@ -170,6 +172,7 @@ impl TrackConfig {
         if self.gaussians_per_node == 0 {
             return Err("track.gaussians_per_node must be at least 1".into());
         }
+
         if self.arap_neighbours == 0 {
             return Err("track.arap_neighbours must be at least 1".into());
         }
@@ -1137,6 +1140,7 @@ impl NodeTracker {
     /// returns the parts whose end pose changed.
     pub fn search_end_poses(&mut self, end_views: &[TrainView]) -> usize {
         const VIEWS: usize = 6;
+        const SEARCH_REFINED: usize = 2;
         let step = self.config.track.search_step;
         let Some(mut parts) = self.articulation.clone() else {
             return 0;
@@ -1169,7 +1173,7 @@ impl NodeTracker {
                 let (u, v) = own.any_orthonormal_pair();
                 frames.push((own, u, v));
             }
-            let mut best: Option<(f32, NodePose)> = None;
+            let mut scored: Vec<(f32, NodePose)> = Vec::new();
             for (a, u, v) in &frames {
                 let (a, u, v) = (a, *u, *v);
                 let extent = |d: Vec3| {
@@ -1201,36 +1205,39 @@ impl NodeTracker {
                 for h in hypotheses {
                     let mut trial = parts.clone();
                     trial.poses[last][p] = h;
-                    let loss = self.articulated_loss(&trial, &trial.node_part, &check);
-                    if best.is_none_or(|(b, _)| loss < b) {
-                        best = Some((loss, h));
-                    }
+                    scored.push((self.articulated_loss(&trial, &trial.node_part, &check), h));
                 }
             }
-            let Some((loss, pose)) = best else { continue };
-            tracing::info!(part = p + 1, loss, current, "stage II: the best end pose of a global search");
-            if loss < current {
-                let before = (self.articulation.clone(), self.knots[last].clone());
-                let before_loss = self.refit_end_poses(end_views);
-                let mut searched = parts.clone();
+            scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+            // A coarse hypothesis is a grid point, the tracked pose a refined one:
+            // compare them only after both are refined (a raw grid point never won).
+            let candidates = distinct_poses(&scored, SEARCH_REFINED, 2.0 * step, 0.1 * self.object_size);
+            tracing::info!(part = p + 1, best = scored.first().map(|s| s.0), current, "stage II: a global search of a part's end pose");
+            let Some(mut best_loss) = self.refit_end_poses(end_views) else { continue };
+            let mut best_state = (self.articulation.clone(), self.knots[last].clone());
+            let refined = best_state.clone();
+            let mut replaced = false;
+            for pose in candidates {
+                let mut searched = refined.0.clone().expect("parts");
                 searched.poses[last][p] = pose;
+                self.knots[last] = refined.1.clone();
                 searched.carry(&self.node_centres, &searched.poses[last].clone(), &mut self.knots[last]);
                 self.articulation = Some(searched);
-                let after_loss = self.refit_end_poses(end_views);
-                if after_loss < before_loss {
-                    tracing::info!(
-                        part = p + 1,
-                        before = before_loss,
-                        after = after_loss,
-                        "stage II: a part's end pose replaced by the searched one"
-                    );
-                    changed += 1;
-                } else {
-                    self.articulation = before.0;
-                    self.knots[last] = before.1;
+                let Some(loss) = self.refit_end_poses(end_views) else { continue };
+                // The tracked pose stands unless a searched one explains the end
+                // state clearly better (storage seed 2: a drawer turned 46 degrees
+                // for a 0.4 % lower loss).
+                if loss < best_loss * (1.0 - self.config.track.merge_tolerance) {
+                    tracing::info!(part = p + 1, before = best_loss, after = loss, "stage II: a part's end pose replaced by a searched one");
+                    best_loss = loss;
+                    best_state = (self.articulation.clone(), self.knots[last].clone());
+                    replaced = true;
                 }
-                parts = self.articulation.clone().expect("parts");
             }
+            changed += usize::from(replaced);
+            self.articulation = best_state.0;
+            self.knots[last] = best_state.1;
+            parts = self.articulation.clone().expect("parts");
         }
         changed
     }
@@ -1468,6 +1475,24 @@ fn same_joint(ja: &crate::motion::JointEstimate, jb: &crate::motion::JointEstima
 
 /// Mean distance of `pts` from their centroid (0 for none).
 /// At most `n` of `items`, evenly spread over them (the first and the last included).
+/// The first `n` of `scored` (best first) that differ from every one taken before
+/// by more than `angle` radians or `distance` in translation.
+fn distinct_poses(scored: &[(f32, NodePose)], n: usize, angle: f32, distance: f32) -> Vec<NodePose> {
+    let mut taken: Vec<NodePose> = Vec::new();
+    for (_, h) in scored {
+        if taken.len() == n {
+            break;
+        }
+        let near = |t: &NodePose| {
+            t.rotation.angle_between(h.rotation) <= angle && t.translation.distance(h.translation) <= distance
+        };
+        if !taken.iter().any(near) {
+            taken.push(*h);
+        }
+    }
+    taken
+}
+
 fn evenly_spread<'a, T>(items: &[&'a T], n: usize) -> Vec<&'a T> {
     let n = n.min(items.len());
     (0..n).map(|i| items[(i * (items.len() - 1)) / (n - 1).max(1)]).collect()
@@ -1704,6 +1729,9 @@ mod tests {
         assert!(error(&local) > 0.2, "the local refit alone should not reach the truth: {}", error(&local));
         assert_eq!(tracker.search_end_poses(&views), 1, "the searched pose replaces the tracked one");
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after the search: {}", error(&tracker));
+        // From the true pose, no grid hypothesis explains the end state clearly better.
+        assert_eq!(tracker.search_end_poses(&views), 0, "a second search keeps the pose it found");
+        assert!(error(&tracker) < 0.03, "largest door Gaussian offset after a second search: {}", error(&tracker));
     }
 
     /// The end-state refit with the coverage term at `alpha_weight` (views with alpha).
