@@ -1212,7 +1212,12 @@ impl NodeTracker {
             // A coarse hypothesis is a grid point, the tracked pose a refined one:
             // compare them only after both are refined (a raw grid point never won).
             let candidates = distinct_poses(&scored, SEARCH_REFINED, 2.0 * step, 0.1 * self.object_size);
-            tracing::info!(part = p + 1, best = scored.first().map(|s| s.0), current, "stage II: a global search of a part's end pose");
+            tracing::info!(
+                part = p + 1,
+                best = scored.first().map(|s| s.0),
+                current,
+                "stage II: a global search of a part's end pose"
+            );
             let Some(mut best_loss) = self.refit_end_poses(end_views) else { continue };
             let mut best_state = (self.articulation.clone(), self.knots[last].clone());
             let refined = best_state.clone();
@@ -1228,7 +1233,12 @@ impl NodeTracker {
                 // state clearly better (storage seed 2: a drawer turned 46 degrees
                 // for a 0.4 % lower loss).
                 if loss < best_loss * (1.0 - self.config.track.merge_tolerance) {
-                    tracing::info!(part = p + 1, before = best_loss, after = loss, "stage II: a part's end pose replaced by a searched one");
+                    tracing::info!(
+                        part = p + 1,
+                        before = best_loss,
+                        after = loss,
+                        "stage II: a part's end pose replaced by a searched one"
+                    );
                     best_loss = loss;
                     best_state = (self.articulation.clone(), self.knots[last].clone());
                     replaced = true;
