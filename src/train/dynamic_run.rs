@@ -300,9 +300,8 @@ fn run_node_track(
     end_views.iter_mut().for_each(|v| v.time = Some(1.0));
     tracker.refit_end_poses(&end_views);
     tracker.merge_redundant_parts(&frames, &end_views);
-    // Searched once the pieces that explain nothing are merged: a piece given a
-    // searched pose can explain content the start state lacks (measured:
-    // docs/training.md).
+    // Merge first, so that pieces that explain nothing are gone before a searched
+    // pose lets them explain content the start state lacks (docs/training.md).
     if tracker.search_end_poses(&end_views) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
     }

@@ -89,8 +89,9 @@ pub struct TrackConfig {
     /// part's own axis through the edges of the part's box (every `search_step`
     /// radians), prismatic ones along the same axes; the best few on a few end-state
     /// views are refitted locally and kept when one explains the end state better,
-    /// by more than `merge_tolerance`, than the tracked pose refitted the same way.
-    /// Off = 0.
+    /// by more than `merge_tolerance` (relative; the same margin as the merge
+    /// test's, so tuning one moves both), than the tracked pose refitted the same
+    /// way. Off = 0.
     pub search_step: f32,
     /// Static-during-motion detection on nodes: from this many fitted segments on,
     /// a node that has stayed within `freeze_translation` (times the object size)
@@ -172,7 +173,6 @@ impl TrackConfig {
         if self.gaussians_per_node == 0 {
             return Err("track.gaussians_per_node must be at least 1".into());
         }
-
         if self.arap_neighbours == 0 {
             return Err("track.arap_neighbours must be at least 1".into());
         }
@@ -1137,7 +1137,9 @@ impl NodeTracker {
     }
 
     /// Global search of each part's end pose on `end_views` (`track.search_step`);
-    /// returns the parts whose end pose changed.
+    /// returns the parts whose end pose a searched one replaced. Every part's turn
+    /// starts with a refit of all end poses (the baseline its candidates are
+    /// refitted against), so the end poses are refitted even when it returns 0.
     pub fn search_end_poses(&mut self, end_views: &[TrainView]) -> usize {
         const VIEWS: usize = 6;
         const SEARCH_REFINED: usize = 2;
@@ -1145,7 +1147,7 @@ impl NodeTracker {
         let Some(mut parts) = self.articulation.clone() else {
             return 0;
         };
-        if step <= 0.0 || end_views.is_empty() {
+        if step <= 0.0 || end_views.is_empty() || self.config.track.end_iterations == 0 {
             return 0;
         }
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
@@ -1162,7 +1164,6 @@ impl NodeTracker {
                 continue;
             }
             let c = parts.centres[p];
-            let current = self.articulated_loss(&parts, &parts.node_part, &check);
             let own = extract_joint(&parts.poses[last][p].to_rigid(c), c.as_dvec3()).axis.as_vec3();
             // Each candidate axis with the two directions across it that bound the
             // part's box (the object's other principal axes, so the pivots are the
@@ -1215,17 +1216,18 @@ impl NodeTracker {
             tracing::info!(
                 part = p + 1,
                 best = scored.first().map(|s| s.0),
-                current,
                 "stage II: a global search of a part's end pose"
             );
             let Some(mut best_loss) = self.refit_end_poses(end_views) else { continue };
             let mut best_state = (self.articulation.clone(), self.knots[last].clone());
-            let refined = best_state.clone();
+            let tracked_refit = best_state.clone();
             let mut replaced = false;
+            // Each candidate starts from the tracked refit; a later one must beat the
+            // best so far (the tracked pose or an earlier candidate) by the margin.
             for pose in candidates {
-                let mut searched = refined.0.clone().expect("parts");
+                let mut searched = tracked_refit.0.clone().expect("parts");
                 searched.poses[last][p] = pose;
-                self.knots[last] = refined.1.clone();
+                self.knots[last] = tracked_refit.1.clone();
                 searched.carry(&self.node_centres, &searched.poses[last].clone(), &mut self.knots[last]);
                 self.articulation = Some(searched);
                 let Some(loss) = self.refit_end_poses(end_views) else { continue };
@@ -1483,8 +1485,6 @@ fn same_joint(ja: &crate::motion::JointEstimate, jb: &crate::motion::JointEstima
     }
 }
 
-/// Mean distance of `pts` from their centroid (0 for none).
-/// At most `n` of `items`, evenly spread over them (the first and the last included).
 /// The first `n` of `scored` (best first) that differ from every one taken before
 /// by more than `angle` radians or `distance` in translation.
 fn distinct_poses(scored: &[(f32, NodePose)], n: usize, angle: f32, distance: f32) -> Vec<NodePose> {
@@ -1503,6 +1503,7 @@ fn distinct_poses(scored: &[(f32, NodePose)], n: usize, angle: f32, distance: f3
     taken
 }
 
+/// At most `n` of `items`, evenly spread over them (the first and the last included).
 fn evenly_spread<'a, T>(items: &[&'a T], n: usize) -> Vec<&'a T> {
     let n = n.min(items.len());
     (0..n).map(|i| items[(i * (items.len() - 1)) / (n - 1).max(1)]).collect()
@@ -1540,6 +1541,7 @@ fn principal_axes(points: &[Vec3]) -> [Vec3; 3] {
     axes
 }
 
+/// Mean distance of `pts` from their centroid (0 for none).
 fn mean_radius(pts: &[DVec3]) -> f64 {
     let c = pts.iter().copied().sum::<DVec3>() / pts.len().max(1) as f64;
     pts.iter().map(|x| x.distance(c)).sum::<f64>() / pts.len().max(1) as f64
@@ -1739,7 +1741,7 @@ mod tests {
         assert!(error(&local) > 0.2, "the local refit alone should not reach the truth: {}", error(&local));
         assert_eq!(tracker.search_end_poses(&views), 1, "the searched pose replaces the tracked one");
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after the search: {}", error(&tracker));
-        // From the true pose, no grid hypothesis explains the end state clearly better.
+        // From the pose found, no grid hypothesis explains the end state clearly better.
         assert_eq!(tracker.search_end_poses(&views), 0, "a second search keeps the pose it found");
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after a second search: {}", error(&tracker));
     }
