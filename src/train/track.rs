@@ -994,8 +994,7 @@ impl NodeTracker {
             (1..=count).map(|p| (0..node_part.len()).filter(|&k| node_part[k] == p).collect()).collect();
         let centres: Vec<Vec3> = (1..=count)
             .map(|p| {
-                let members: Vec<usize> =
-                    (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == p).collect();
+                let members = self.gaussians_labelled(&node_part, p);
                 members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32
             })
             .collect();
@@ -1156,10 +1155,8 @@ impl NodeTracker {
         let principal = principal_axes(&means);
         let mut changed = 0;
         for p in 0..parts.centres.len() {
-            let members: Vec<Vec3> = (0..means.len())
-                .filter(|&i| parts.node_part[self.binding[i] as usize] == p + 1)
-                .map(|i| means[i])
-                .collect();
+            let members: Vec<Vec3> =
+                self.gaussians_labelled(&parts.node_part, p + 1).into_iter().map(|i| means[i]).collect();
             if members.len() < 3 {
                 continue;
             }
@@ -1340,6 +1337,11 @@ impl NodeTracker {
         }
         chunks.retain(|c| !c.is_empty());
         chunks
+    }
+
+    /// The start-state Gaussians whose node `node_part` labels `label` (0 = base, p + 1 = part p).
+    fn gaussians_labelled(&self, node_part: &[usize], label: usize) -> Vec<usize> {
+        (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == label).collect()
     }
 
     /// Gaussians per node.
@@ -1705,7 +1707,7 @@ mod tests {
         config.eval_background = [0.0; 3];
         let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
         let node_part: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.x > 0.0)).collect();
-        let members: Vec<usize> = (0..gs.len()).filter(|&i| node_part[tracker.binding[i] as usize] == 1).collect();
+        let members = tracker.gaussians_labelled(&node_part, 1);
         let centre = members.iter().map(|&i| tracker.gaussians.mean(i)).sum::<Vec3>() / members.len() as f32;
         let r = Quat::from_rotation_y(-std::f32::consts::FRAC_PI_2);
         let truth = NodePose { rotation: r, translation: r * centre - centre };
