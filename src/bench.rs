@@ -8,6 +8,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::camera::{Camera, Intrinsics};
+use crate::render::lanes::Kernels;
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::{logit, GaussianSet};
 
@@ -217,11 +218,14 @@ pub struct MachineInfo {
     pub cpu: Option<String>,
     /// SIMD features the CPU reports at run time.
     pub cpu_features: Vec<&'static str>,
-    /// SIMD features this binary was compiled to use (`-C target-cpu` / `target-feature`);
-    /// the rasterizer's 8-lane kernels (`wide::f32x8`) use what is compiled in.
+    /// SIMD features the whole binary was compiled to assume (its baseline,
+    /// `-C target-cpu` / `target-feature`).
     pub compiled_features: Vec<&'static str>,
-    /// How the 8-lane kernels execute with the compiled features.
+    /// The rasterizer's kernel set, chosen at run time from the CPU's features
+    /// (`render::lanes::Kernels`): avx512, avx2 or portable.
     pub kernel_set: &'static str,
+    /// How that kernel set executes its 8 lanes.
+    pub kernel_description: &'static str,
     pub threads: usize,
 }
 
@@ -237,13 +241,8 @@ impl MachineInfo {
             cpu,
             cpu_features: runtime_features(),
             compiled_features: compiled_features(),
-            kernel_set: if cfg!(target_feature = "avx") {
-                "8 lanes in one 256-bit register (AVX)"
-            } else if cfg!(any(target_feature = "sse2", target_feature = "neon")) {
-                "8 lanes as two 128-bit registers (SSE2 / NEON)"
-            } else {
-                "8 lanes in scalar code"
-            },
+            kernel_set: Kernels::active().name(),
+            kernel_description: Kernels::active().description(),
             threads: rayon::current_num_threads(),
         }
     }
@@ -299,6 +298,8 @@ mod machine_tests {
             assert!(m.cpu_features.contains(f), "compiled for {f}, which the CPU does not report: {m:?}");
         }
         let json = serde_json::to_value(&m).expect("serialises");
-        assert!(json["kernel_set"].as_str().is_some_and(|k| k.contains("8 lanes")), "{json}");
+        assert!(json["kernel_description"].as_str().is_some_and(|k| k.contains("8 lanes")), "{json}");
+        let set = json["kernel_set"].as_str().expect("a kernel set name");
+        assert!(crate::render::lanes::Kernels::named(set).is_ok(), "{json}");
     }
 }

@@ -13,6 +13,10 @@ struct Cli {
     /// Log filter (tracing env-filter syntax), e.g. "info" or "aim=debug".
     #[arg(long, global = true, default_value = "info")]
     log: String,
+    /// The CPU rasterizer's kernel set: avx512, avx2 or portable (default: the
+    /// fastest this CPU runs, detected at start).
+    #[arg(long, global = true)]
+    kernels: Option<String>,
     #[command(subcommand)]
     command: Command,
 }
@@ -73,6 +77,14 @@ fn main() -> ExitCode {
     // Colour only for a person at a terminal: logs in files and pipes stay plain text.
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr()) && std::env::var_os("NO_COLOR").is_none();
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(colour).init();
+    if let Some(name) = &cli.kernels {
+        let chosen = aim::render::lanes::Kernels::named(name)
+            .and_then(|k| k.make_active().map_err(|used| format!("kernel set already chosen: {}", used.name())));
+        if let Err(e) = chosen {
+            eprintln!("error: --kernels: {e}");
+            return ExitCode::from(2);
+        }
+    }
     let result = match cli.command {
         Command::Render(args) => commands::render::run(args),
         Command::Bench(b) => commands::bench::run(b),

@@ -13,6 +13,7 @@ use rayon::prelude::*;
 use crate::camera::Camera;
 use crate::splat::GaussianSet;
 
+pub mod lanes;
 pub mod project;
 pub mod raster;
 pub mod sh;

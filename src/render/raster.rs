@@ -3,39 +3,46 @@
 //! runs Gaussian-outer, pixel-inner over the Gaussian's exact pixel box, so a
 //! Gaussian only touches the pixels it can reach.
 
+use super::lanes::{dispatch, prefetch, Block, Kernels, Lanes, Portable, LANES};
+use super::project::{Projected, ProjectedGrad, ALPHA_MIN};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
-use wide::{f32x8, CmpGe, CmpGt, CmpLe, CmpLt};
 
-/// SIMD lanes: adjacent pixels of one tile row.
-type Lanes = f32x8;
-const LANES: u32 = 8;
-
-use super::project::{Projected, ProjectedGrad, ALPHA_MIN};
+/// Lanes per vector, as a pixel coordinate step.
+const LANE_STEP: u32 = LANES as u32;
 
 pub const TILE: u32 = 16;
+/// The largest image side the rasterizer renders (pixel boxes are stored as u16).
+pub const MAX_IMAGE_SIDE: u32 = u16::MAX as u32;
 const TILE_PIXELS: usize = (TILE * TILE) as usize;
 /// Compositing stops once transmittance would fall below this.
 pub const TRANSMITTANCE_MIN: f32 = 1e-4;
 /// Alpha is clamped here so (1 - alpha) never vanishes in the backward division.
 pub const ALPHA_MAX: f32 = 0.99;
 
-/// What compositing reads of one visible Gaussian.
+/// How many list entries ahead the compositing loops prefetch the Gaussian they
+/// will read (about one memory latency of work ahead).
+const PREFETCH_AHEAD: usize = 8;
+
+/// What compositing reads of one visible Gaussian: one 64-byte cache line.
 #[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
 pub struct Splat {
     mean: Vec2,
     conic: [f32; 3],
     opacity: f32,
     color: Vec3,
     depth: f32,
-    bbox: [u32; 4],
+    /// Pixel box [x0, y0, x1, y1] (inclusive), inside the image.
+    bbox: [u16; 4],
     span: [f32; 3],
 }
 
 impl Splat {
     fn new(p: &Projected) -> Self {
         let Projected { mean2d, conic, depth, color, opacity, bbox, span, .. } = *p;
-        Self { mean: mean2d, conic, opacity, color, depth, bbox, span }
+        // Boxes lie inside the image, at most MAX_IMAGE_SIDE px on a side.
+        Self { mean: mean2d, conic, opacity, color, depth, bbox: bbox.map(|v| v as u16), span }
     }
 }
 
@@ -74,6 +81,10 @@ impl TileBins {
 
 /// Sort visible Gaussians (`proj[i]` is Some) front to back and bin them into tiles.
 pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBins {
+    assert!(
+        width <= MAX_IMAGE_SIDE && height <= MAX_IMAGE_SIDE,
+        "{width}x{height} px: the rasterizer renders at most {MAX_IMAGE_SIDE} px on a side"
+    );
     let tiles_x = width.div_ceil(TILE);
     let tiles_y = height.div_ceil(TILE);
     let mut by_depth: Vec<(f32, u32)> =
@@ -88,9 +99,9 @@ pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBin
 
     let ntiles = (tiles_x * tiles_y) as usize;
     let mut counts = vec![0u32; ntiles + 1];
-    let tile_span = |s: &Splat| (s.bbox[0] / TILE, s.bbox[1] / TILE, s.bbox[2] / TILE, s.bbox[3] / TILE);
+    let tile_span = |s: &Splat| s.bbox.map(|v| v as u32 / TILE);
     for s in &splats {
-        let (tx0, ty0, tx1, ty1) = tile_span(s);
+        let [tx0, ty0, tx1, ty1] = tile_span(s);
         for ty in ty0..=ty1 {
             for tx in tx0..=tx1 {
                 counts[(ty * tiles_x + tx) as usize + 1] += 1;
@@ -104,7 +115,7 @@ pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBin
     let mut fill = offsets.clone();
     let mut entries = vec![0u32; offsets[ntiles] as usize];
     for (rank, s) in splats.iter().enumerate() {
-        let (tx0, ty0, tx1, ty1) = tile_span(s);
+        let [tx0, ty0, tx1, ty1] = tile_span(s);
         for ty in ty0..=ty1 {
             for tx in tx0..=tx1 {
                 let t = (ty * tiles_x + tx) as usize;
@@ -133,72 +144,45 @@ pub struct RasterOutput {
 
 /// The rows of Gaussian box `bbox` inside tile rect `r` (exclusive end); None if empty.
 #[inline]
-fn clip_rows(bbox: &[u32; 4], r: &[u32; 4]) -> Option<(u32, u32)> {
-    let y0 = bbox[1].max(r[1]);
-    let y1 = (bbox[3] + 1).min(r[3]);
-    (bbox[0] < r[2] && bbox[2] >= r[0] && y0 < y1).then_some((y0, y1))
-}
-
-const LANE_IDX: Lanes = Lanes::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
-
-/// Up to eight consecutive tile rows of one Gaussian: for each row (lane) the
-/// tile-local pixels [lo, hi) it can reach, i.e. the row's chord of the
-/// conservative ellipse power >= power_cut. Bit j of `rows` is set when row
-/// `row0 + j` has a non-empty chord.
-struct ChordBatch {
-    row0: u32,
-    rows: u32,
-    lo: [f32; LANES as usize],
-    hi: [f32; LANES as usize],
-}
-
-impl ChordBatch {
-    /// Rows `row0 + j` for the set bits j of `mask`, with their chords.
-    #[inline(always)]
-    fn each(&self, mut mask: u32, mut f: impl FnMut(u32, f32, f32)) {
-        while mask != 0 {
-            let j = mask.trailing_zeros() as usize;
-            mask &= mask - 1;
-            f(self.row0 + j as u32, self.lo[j], self.hi[j]);
-        }
-    }
-}
-
-/// Call `f` with the chord batches of Gaussian `p` in tile rect `r`, top to bottom.
-#[inline(always)]
-fn for_each_chord_batch(p: &Splat, r: &[u32; 4], mut f: impl FnMut(&ChordBatch, Lanes, Lanes)) {
-    let Some((y0, y1)) = clip_rows(&p.bbox, r) else { return };
-    let [s0, s1, s2] = p.span;
-    let x0 = Lanes::splat(r[0] as f32);
-    let x1 = Lanes::splat(r[2] as f32);
-    let mut y = y0;
-    while y < y1 {
-        let dy = Lanes::splat(p.mean.y) - ((Lanes::splat(y as f32) + LANE_IDX) + Lanes::splat(0.5));
-        let disc = Lanes::splat(s1) * dy * dy + Lanes::splat(s2);
-        let root = disc.fast_max(Lanes::ZERO).sqrt();
-        let centre = Lanes::splat(-s0) * dy;
-        // dx = mean.x - (px + 0.5) ranges over centre -+ root; lo = ceil, hi = floor + 1
-        // (hi + 1 >= 0 after the clamp, so rounding down is floor).
-        let mx = Lanes::splat(p.mean.x);
-        let lo = (mx - (centre + root) - Lanes::splat(0.5)).fast_max(x0).fast_min(x1).ceil() - x0;
-        let hi = ((mx - (centre - root) - Lanes::splat(0.5)).fast_max(x0 - Lanes::ONE).fast_min(x1 - Lanes::ONE)
-            + Lanes::ONE)
-            .floor()
-            - x0;
-        let rows = disc.cmp_ge(Lanes::ZERO) & hi.cmp_gt(lo) & LANE_IDX.cmp_lt(Lanes::splat((y1 - y) as f32));
-        let batch = ChordBatch { row0: y - r[1], rows: rows.move_mask() as u32, lo: lo.to_array(), hi: hi.to_array() };
-        if batch.rows != 0 {
-            f(&batch, lo, hi);
-        }
-        y += LANES;
-    }
+fn clip_rows(bbox: &[u16; 4], r: &[u32; 4]) -> Option<(u32, u32)> {
+    let [x0, y0, x1, y1] = bbox.map(u32::from);
+    let y0 = y0.max(r[1]);
+    let y1 = (y1 + 1).min(r[3]);
+    (x0 < r[2] && x1 >= r[0] && y0 < y1).then_some((y0, y1))
 }
 
 /// Call `f(row, lo, hi)` for each tile row of rect `r` that Gaussian `p` can
-/// reach, with the row's chord (see [`ChordBatch`]).
+/// reach, top to bottom, with the row's chord: the tile-local pixels [lo, hi)
+/// inside the conservative ellipse power >= power_cut. Chords are solved in
+/// closed form for eight rows at a time (one row per lane).
 #[inline(always)]
-fn for_each_chord(p: &Splat, r: &[u32; 4], mut f: impl FnMut(u32, f32, f32)) {
-    for_each_chord_batch(p, r, |batch, _, _| batch.each(batch.rows, &mut f));
+fn for_each_chord<L: Lanes>(p: &Splat, r: &[u32; 4], mut f: impl FnMut(u32, f32, f32)) {
+    let Some((y0, y1)) = clip_rows(&p.bbox, r) else { return };
+    let [s0, s1, s2] = p.span;
+    let x0 = L::splat(r[0] as f32);
+    let x1 = L::splat(r[2] as f32);
+    let mut y = y0;
+    while y < y1 {
+        let dy = L::splat(p.mean.y) - ((L::splat(y as f32) + L::INDEX) + L::splat(0.5));
+        let disc = L::splat(s1) * dy * dy + L::splat(s2);
+        let root = disc.max(L::ZERO).sqrt();
+        let centre = L::splat(-s0) * dy;
+        // dx = mean.x - (px + 0.5) ranges over centre -+ root; lo = ceil, hi = floor + 1
+        // (hi + 1 >= 0 after the clamp, so rounding down is floor).
+        let mx = L::splat(p.mean.x);
+        let lo = (mx - (centre + root) - L::splat(0.5)).max(x0).min(x1).ceil() - x0;
+        let hi = ((mx - (centre - root) - L::splat(0.5)).max(x0 - L::ONE).min(x1 - L::ONE) + L::ONE).floor() - x0;
+        let mut rows = (disc.cmp_ge(L::ZERO) & hi.cmp_gt(lo) & L::INDEX.cmp_lt(L::splat((y1 - y) as f32))).move_mask();
+        let (lo, hi) = (lo.to_array(), hi.to_array());
+        // The closure is called here, not through a forwarding `&mut f`: every
+        // call on the way must inline into the kernel's #[target_feature] entry.
+        while rows != 0 {
+            let j = rows.trailing_zeros() as usize;
+            rows &= rows - 1;
+            f(y - r[1] + j as u32, lo[j], hi[j]);
+        }
+        y += LANE_STEP;
+    }
 }
 
 /// How many Gaussian-pixel evaluations a forward pass makes before early
@@ -210,7 +194,7 @@ pub fn pixel_evaluations(bins: &TileBins, width: u32, height: u32) -> u64 {
             let rect = bins.tile_rect(t, width, height);
             let mut n = 0u64;
             for &rank in bins.tile(t) {
-                for_each_chord(&bins.splats[rank as usize], &rect, |_, lo, hi| n += (hi - lo) as u64);
+                for_each_chord::<Portable>(&bins.splats[rank as usize], &rect, |_, lo, hi| n += (hi - lo) as u64);
             }
             n
         })
@@ -220,23 +204,23 @@ pub fn pixel_evaluations(bins: &TileBins, width: u32, height: u32) -> u64 {
 impl Splat {
     /// Gaussian exponent on a lane group at offsets (dx, dy) from the mean.
     #[inline(always)]
-    fn power(&self, dx: Lanes, dy: Lanes) -> Lanes {
+    fn power<L: Lanes>(&self, dx: L, dy: L) -> L {
         let [a, b, c] = self.conic;
-        Lanes::splat(-0.5) * (Lanes::splat(a) * dx * dx + Lanes::splat(c) * dy * dy) - Lanes::splat(b) * dx * dy
+        L::splat(-0.5) * (L::splat(a) * dx * dx + L::splat(c) * dy * dy) - L::splat(b) * dx * dy
     }
 
     /// The alpha on a lane group, the raw Gaussian value, and the lanes that
     /// pass the skip rules (`live`, power <= 0, alpha >= ALPHA_MIN); None when
     /// no lane passes (checked before the exp).
     #[inline(always)]
-    fn alpha(&self, power: Lanes, live: Lanes) -> Option<(Lanes, Lanes, Lanes)> {
-        let live = live & power.cmp_le(Lanes::ZERO);
+    fn alpha<L: Lanes>(&self, power: L, live: L) -> Option<(L, L, L)> {
+        let live = live & power.cmp_le(L::ZERO);
         if live.none() {
             return None;
         }
         let g = exp_nonpositive(power);
-        let alpha = (Lanes::splat(self.opacity) * g).min(Lanes::splat(ALPHA_MAX));
-        let valid = live & alpha.cmp_ge(Lanes::splat(ALPHA_MIN));
+        let alpha = (L::splat(self.opacity) * g).min(L::splat(ALPHA_MAX));
+        let valid = live & alpha.cmp_ge(L::splat(ALPHA_MIN));
         (!valid.none()).then_some((alpha, g, valid))
     }
 }
@@ -245,23 +229,22 @@ impl Splat {
 /// Cheaper than a general exp: no overflow handling, and a degree-5 fit of
 /// e^r on [-ln2/2, ln2/2] (coefficients fitted for this crate, relative error 1.7e-7).
 #[inline(always)]
-pub(crate) fn exp_nonpositive(x: Lanes) -> Lanes {
+pub(crate) fn exp_nonpositive<L: Lanes>(x: L) -> L {
     const C: [f32; 5] = [0.999_999_5, 0.499_991_42, 0.166_681_14, 0.041_898_73, 0.008_261_531];
     // Cody-Waite: x = n ln2 + r with ln2 split in two so r keeps its precision.
     const LN2_HI: f32 = 0.693_359_4;
     const LN2_LO: f32 = -2.121_944_4e-4;
-    let x = x.fast_max(Lanes::splat(-87.0));
-    let n = (x * Lanes::splat(std::f32::consts::LOG2_E)).round();
-    let r = n.mul_neg_add(Lanes::splat(LN2_LO), n.mul_neg_add(Lanes::splat(LN2_HI), x));
+    let x = x.max(L::splat(-87.0));
+    let n = (x * L::splat(std::f32::consts::LOG2_E)).round();
+    let r = n.mul_neg_add(L::splat(LN2_LO), n.mul_neg_add(L::splat(LN2_HI), x));
     // Estrin's scheme: a shorter dependency chain than Horner's.
     let r2 = r * r;
-    let lo = Lanes::splat(C[1]).mul_add(r, Lanes::splat(C[0]));
-    let mid = Lanes::splat(C[3]).mul_add(r, Lanes::splat(C[2]));
-    let poly = Lanes::splat(C[4]).mul_add(r2, mid).mul_add(r2, lo);
-    let e_r = poly.mul_add(r, Lanes::ONE);
+    let lo = L::splat(C[1]).mul_add(r, L::splat(C[0]));
+    let mid = L::splat(C[3]).mul_add(r, L::splat(C[2]));
+    let poly = L::splat(C[4]).mul_add(r2, mid).mul_add(r2, lo);
+    let e_r = poly.mul_add(r, L::ONE);
     // 2^n from the float's exponent bits (n >= -126 after the clamp).
-    let scale: Lanes = bytemuck::cast((n.fast_round_int() + wide::i32x8::splat(127)) << 23);
-    e_r * scale
+    e_r * n.exp2_integral()
 }
 
 /// Visit the lane groups of tile row `row` that cover the chord [lo, hi) of
@@ -269,105 +252,88 @@ pub(crate) fn exp_nonpositive(x: Lanes) -> Lanes {
 /// tile's pixel arrays, the lanes inside the chord, and the offsets
 /// mean - pixel centre per lane.
 #[inline(always)]
-fn for_each_lane_group(
+fn for_each_lane_group<L: Lanes>(
     p: &Splat,
     rect: &[u32; 4],
     row: u32,
     lo: f32,
     hi: f32,
-    mut f: impl FnMut(usize, Lanes, Lanes, Lanes),
+    mut f: impl FnMut(usize, L, L, L),
 ) {
-    let dy = Lanes::splat(p.mean.y - ((rect[1] + row) as f32 + 0.5));
-    let mut x0 = lo as u32 & !(LANES - 1);
+    let dy = L::splat(p.mean.y - ((rect[1] + row) as f32 + 0.5));
+    let mut x0 = lo as u32 & !(LANE_STEP - 1);
     while (x0 as f32) < hi {
-        let lane_x = Lanes::splat(x0 as f32) + LANE_IDX;
-        let in_span = lane_x.cmp_ge(Lanes::splat(lo)) & lane_x.cmp_lt(Lanes::splat(hi));
-        let dx = Lanes::splat(p.mean.x) - (Lanes::splat((rect[0] + x0) as f32) + LANE_IDX + Lanes::splat(0.5));
+        let lane_x = L::splat(x0 as f32) + L::INDEX;
+        let in_span = lane_x.cmp_ge(L::splat(lo)) & lane_x.cmp_lt(L::splat(hi));
+        let dx = L::splat(p.mean.x) - (L::splat((rect[0] + x0) as f32) + L::INDEX + L::splat(0.5));
         f((row * TILE + x0) as usize, in_span, dx, dy);
-        x0 += LANES;
+        x0 += LANE_STEP;
     }
 }
 
+/// One value per pixel of a tile, in lane groups aligned for whole-vector access.
+#[derive(Clone, Copy)]
+struct Plane([Block; TILE_PIXELS / LANES]);
+
+impl Plane {
+    fn filled(v: f32) -> Self {
+        Self([Block([v; LANES]); TILE_PIXELS / LANES])
+    }
+}
+
+impl std::ops::Index<usize> for Plane {
+    type Output = f32;
+    fn index(&self, l: usize) -> &f32 {
+        &self.0[l / LANES].0[l % LANES]
+    }
+}
+
+impl std::ops::IndexMut<usize> for Plane {
+    fn index_mut(&mut self, l: usize) -> &mut f32 {
+        &mut self.0[l / LANES].0[l % LANES]
+    }
+}
+
+/// The lane group starting at pixel `l` (a multiple of [`LANES`]).
 #[inline(always)]
-fn ld(a: &[f32; TILE_PIXELS], l: usize) -> Lanes {
-    let v: [f32; LANES as usize] = a[l..l + LANES as usize].try_into().expect("a full lane group");
-    Lanes::new(v)
+fn ld<L: Lanes>(a: &Plane, l: usize) -> L {
+    L::load(&a.0[l / LANES])
 }
 
 #[inline(always)]
-fn st(a: &mut [f32; TILE_PIXELS], l: usize, v: Lanes) {
-    a[l..l + LANES as usize].copy_from_slice(&v.to_array());
+fn st<L: Lanes>(a: &mut Plane, l: usize, v: L) {
+    v.store(&mut a.0[l / LANES]);
 }
 
 #[inline(always)]
-fn add(a: &mut [f32; TILE_PIXELS], l: usize, v: Lanes) {
-    let sum = ld(a, l) + v;
+fn add<L: Lanes>(a: &mut Plane, l: usize, v: L) {
+    let sum = ld::<L>(a, l) + v;
     st(a, l, sum);
 }
 
 /// One tile's forward state, structure of arrays over its 16x16 pixels.
 struct TileResult {
     rect: [u32; 4],
-    color: [[f32; TILE_PIXELS]; 3],
-    depth: [f32; TILE_PIXELS],
-    t: [f32; TILE_PIXELS],
+    color: [Plane; 3],
+    depth: Plane,
+    t: Plane,
     /// One past the last composited list position (as f32: exact below 2^24).
-    last: [f32; TILE_PIXELS],
+    last: Plane,
 }
 
-/// Forward compositing over all tiles.
+/// Forward compositing over all tiles, with the fastest kernel set this CPU runs.
 pub fn rasterize(bins: &TileBins, width: u32, height: u32, background: Vec3) -> RasterOutput {
+    rasterize_with(Kernels::active(), bins, width, height, background)
+}
+
+/// Forward compositing over all tiles with kernel set `kernels`.
+pub fn rasterize_with(kernels: Kernels, bins: &TileBins, width: u32, height: u32, background: Vec3) -> RasterOutput {
     let results: Vec<TileResult> = (0..bins.tile_count())
         .into_par_iter()
         .map(|t| {
-            let rect = bins.tile_rect(t, width, height);
-            let mut res = TileResult {
-                rect,
-                color: [[0.0; TILE_PIXELS]; 3],
-                depth: [0.0; TILE_PIXELS],
-                t: [1.0; TILE_PIXELS],
-                last: [0.0; TILE_PIXELS],
-            };
-            let npix = (rect[2] - rect[0]) * (rect[3] - rect[1]);
-            let mut ndone = 0u32;
-            // Pixels still compositing in each row, so finished rows are skipped whole.
-            let mut row_live = [rect[2] - rect[0]; TILE as usize];
-            for (k, &rank) in bins.tile(t).iter().enumerate() {
-                let p = &bins.splats[rank as usize];
-                let (cr, cg, cb, z) =
-                    (Lanes::splat(p.color.x), Lanes::splat(p.color.y), Lanes::splat(p.color.z), Lanes::splat(p.depth));
-                let k_next = Lanes::splat((k + 1) as f32);
-                for_each_chord(p, &rect, |row, lo, hi| {
-                    if row_live[row as usize] == 0 {
-                        return;
-                    }
-                    for_each_lane_group(p, &rect, row, lo, hi, |l, in_span, dx, dy| {
-                        // A finished pixel keeps its transmittance negated (see below).
-                        let t_now = ld(&res.t, l);
-                        let live = in_span & t_now.cmp_gt(Lanes::ZERO);
-                        let Some((alpha, _, valid)) = p.alpha(p.power(dx, dy), live) else { return };
-                        let t_next = t_now * (Lanes::ONE - alpha);
-                        let term = valid & t_next.cmp_lt(Lanes::splat(TRANSMITTANCE_MIN));
-                        let contrib = valid & !term;
-                        let finished = term.move_mask().count_ones();
-                        ndone += finished;
-                        row_live[row as usize] -= finished;
-                        let w = contrib.blend(alpha * t_now, Lanes::ZERO);
-                        for (acc, c) in res.color.iter_mut().zip([cr, cg, cb]) {
-                            add(acc, l, c * w);
-                        }
-                        add(&mut res.depth, l, z * w);
-                        // Finished pixels store -T: the sign is the "done" flag, |T| the result.
-                        st(&mut res.t, l, contrib.blend(t_next, term.blend(-t_now, t_now)));
-                        let last_now = ld(&res.last, l);
-                        st(&mut res.last, l, contrib.blend(k_next, last_now));
-                    });
-                });
-                if ndone == npix {
-                    break;
-                }
-            }
-            res
+            dispatch!(kernels, |L; bins: &TileBins, t: usize, width: u32, height: u32| -> TileResult {
+                forward_tile::<L>(bins, t, width, height)
+            })
         })
         .collect();
 
@@ -399,8 +365,81 @@ pub fn rasterize(bins: &TileBins, width: u32, height: u32, background: Vec3) -> 
     out
 }
 
+/// Forward compositing of tile t.
+#[inline(always)]
+fn forward_tile<L: Lanes>(bins: &TileBins, t: usize, width: u32, height: u32) -> TileResult {
+    let rect = bins.tile_rect(t, width, height);
+    let mut res = TileResult {
+        rect,
+        color: [Plane::filled(0.0); 3],
+        depth: Plane::filled(0.0),
+        t: Plane::filled(1.0),
+        last: Plane::filled(0.0),
+    };
+    let npix = (rect[2] - rect[0]) * (rect[3] - rect[1]);
+    let mut ndone = 0u32;
+    // Pixels still compositing in each row, so finished rows are skipped whole.
+    let mut row_live = [rect[2] - rect[0]; TILE as usize];
+    let list = bins.tile(t);
+    for (k, &rank) in list.iter().enumerate() {
+        if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
+            prefetch(&bins.splats[ahead as usize]);
+        }
+        let p = &bins.splats[rank as usize];
+        let (cr, cg, cb, z) = (L::splat(p.color.x), L::splat(p.color.y), L::splat(p.color.z), L::splat(p.depth));
+        let k_next = L::splat((k + 1) as f32);
+        for_each_chord::<L>(
+            p,
+            &rect,
+            #[inline(always)]
+            |row, lo, hi| {
+                if row_live[row as usize] == 0 {
+                    return;
+                }
+                for_each_lane_group(
+                    p,
+                    &rect,
+                    row,
+                    lo,
+                    hi,
+                    #[inline(always)]
+                    |l, in_span, dx, dy| {
+                        // A finished pixel keeps its transmittance negated (see below).
+                        let t_now: L = ld(&res.t, l);
+                        let live = in_span & t_now.cmp_gt(L::ZERO);
+                        let Some((alpha, _, valid)) = p.alpha(p.power(dx, dy), live) else { return };
+                        let t_next = t_now * (L::ONE - alpha);
+                        let term = valid & t_next.cmp_lt(L::splat(TRANSMITTANCE_MIN));
+                        let contrib = valid & !term;
+                        let finished = term.move_mask().count_ones();
+                        ndone += finished;
+                        row_live[row as usize] -= finished;
+                        let w = contrib.select(alpha * t_now, L::ZERO);
+                        for (acc, c) in res.color.iter_mut().zip([cr, cg, cb]) {
+                            add(acc, l, c * w);
+                        }
+                        add(&mut res.depth, l, z * w);
+                        // Finished pixels store -T: the sign is the "done" flag, |T| the result.
+                        st(&mut res.t, l, contrib.select(t_next, term.select(-t_now, t_now)));
+                        // Positions only grow, so max() is the masked update; a select
+                        // against the loaded value would become a masked store, which
+                        // AVX2 CPUs (Zen 3) execute slowly.
+                        let last_now: L = ld(&res.last, l);
+                        st(&mut res.last, l, last_now.max(contrib & k_next));
+                    },
+                );
+            },
+        );
+        if ndone == npix {
+            break;
+        }
+    }
+    res
+}
+
 /// Backward compositing: per-Gaussian gradients of the projected quantities and
-/// the background gradient, from dL/d(colour, alpha, depth) images.
+/// the background gradient, from dL/d(colour, alpha, depth) images, with the
+/// fastest kernel set this CPU runs.
 #[allow(clippy::too_many_arguments)]
 pub fn rasterize_backward(
     bins: &TileBins,
@@ -411,6 +450,20 @@ pub fn rasterize_backward(
     grad_color: &[f32],
     grad_alpha: Option<&[f32]>,
     grad_depth: Option<&[f32]>,
+) -> (Vec<ProjectedGrad>, Vec3) {
+    let grads = TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth };
+    rasterize_backward_with(Kernels::active(), bins, width, height, background, fwd, &grads)
+}
+
+/// [`rasterize_backward`] with kernel set `kernels`.
+pub fn rasterize_backward_with(
+    kernels: Kernels,
+    bins: &TileBins,
+    width: u32,
+    height: u32,
+    background: Vec3,
+    fwd: &RasterOutput,
+    g: &TileGrads,
 ) -> (Vec<ProjectedGrad>, Vec3) {
     // One gradient slot per tile entry, so tiles write disjoint memory and the
     // per-Gaussian sum below runs in a fixed order (reproducible results).
@@ -427,12 +480,15 @@ pub fn rasterize_backward(
         .into_par_iter()
         .enumerate()
         .map(|(t, grads)| {
-            let g = TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth };
-            let tile = TileInput { t, bins, width, height, background, fwd };
-            if grad_alpha.is_some() || grad_depth.is_some() {
-                backward_tile::<true>(&tile, grads, &g)
+            let tile = &TileInput { t, bins, width, height, background, fwd };
+            if g.alpha.is_some() || g.depth.is_some() {
+                dispatch!(kernels, |L; tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads| -> Vec3 {
+                    backward_tile::<true, L>(tile, grads, g)
+                })
             } else {
-                backward_tile::<false>(&tile, grads, &g)
+                dispatch!(kernels, |L; tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads| -> Vec3 {
+                    backward_tile::<false, L>(tile, grads, g)
+                })
             }
         })
         .collect();
@@ -463,17 +519,18 @@ struct TileInput<'a> {
     fwd: &'a RasterOutput,
 }
 
-/// The image-space gradients the backward pass consumes.
-struct TileGrads<'a> {
-    color: &'a [f32],
-    alpha: Option<&'a [f32]>,
-    depth: Option<&'a [f32]>,
+/// The image-space gradients the backward pass consumes: dL/d(colour, alpha, depth).
+pub struct TileGrads<'a> {
+    pub color: &'a [f32],
+    pub alpha: Option<&'a [f32]>,
+    pub depth: Option<&'a [f32]>,
 }
 
 /// Backward of one tile, writing its list entries' gradients; returns its share
 /// of the background gradient. `AUX` = alpha or depth gradients are present
 /// (training from colour alone skips that arithmetic).
-fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads) -> Vec3 {
+#[inline(always)]
+fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads) -> Vec3 {
     let TileInput { t, bins, width, height, background, fwd } = *tile;
     let rect = bins.tile_rect(t, width, height);
     let list = bins.tile(t);
@@ -482,13 +539,13 @@ fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad],
     // depth gradients are fixed per pixel, so what lies behind the current
     // Gaussian enters only through its dot product with them:
     // behind = sum_c dL/dC_c (colour behind)_c + dL/dD (depth behind).
-    let mut t_cur = [0.0f32; TILE_PIXELS];
-    let mut behind = [0.0f32; TILE_PIXELS];
-    let mut last = [0.0f32; TILE_PIXELS];
-    let mut gc = [[0.0f32; TILE_PIXELS]; 3];
-    let mut gd = [0.0f32; TILE_PIXELS];
+    let mut t_cur = Plane::filled(0.0);
+    let mut behind = Plane::filled(0.0);
+    let mut last = Plane::filled(0.0);
+    let mut gc = [Plane::filled(0.0); 3];
+    let mut gd = Plane::filled(0.0);
     // dL/d(alpha) times the final transmittance: d(alpha)/d(alpha_k) = T_final / (1 - alpha_k).
-    let mut ga_t = [0.0f32; TILE_PIXELS];
+    let mut ga_t = Plane::filled(0.0);
     let mut bg_grad = Vec3::ZERO;
     let mut max_last = 0u32;
     // Per row, one past the last list position any of its pixels composited.
@@ -513,59 +570,77 @@ fn backward_tile<const AUX: bool>(tile: &TileInput, grads: &mut [ProjectedGrad],
         }
     }
     for k in (0..max_last as usize).rev() {
+        if let Some(ahead) = k.checked_sub(PREFETCH_AHEAD) {
+            prefetch(&bins.splats[list[ahead] as usize]);
+        }
         let sp = &bins.splats[list[k] as usize];
-        let col = [Lanes::splat(sp.color.x), Lanes::splat(sp.color.y), Lanes::splat(sp.color.z)];
-        let z = Lanes::splat(sp.depth);
-        let kf = Lanes::splat(k as f32);
-        let mut acc_col = [Lanes::ZERO; 3];
-        let (mut acc_d, mut acc_op) = (Lanes::ZERO, Lanes::ZERO);
+        let col = [L::splat(sp.color.x), L::splat(sp.color.y), L::splat(sp.color.z)];
+        let z = L::splat(sp.depth);
+        let kf = L::splat(k as f32);
+        let mut acc_col = [L::ZERO; 3];
+        let (mut acc_d, mut acc_op) = (L::ZERO, L::ZERO);
         // Moments of dL/d(power) over the pixels (offsets dx, dy): the conic
         // and 2D-mean gradients are linear in them.
-        let (mut m_x, mut m_y) = (Lanes::ZERO, Lanes::ZERO);
-        let (mut m_xx, mut m_xy, mut m_yy) = (Lanes::ZERO, Lanes::ZERO, Lanes::ZERO);
-        for_each_chord(sp, &rect, |row, lo, hi| {
-            if k as u32 >= row_last[row as usize] {
-                return;
-            }
-            for_each_lane_group(sp, &rect, row, lo, hi, |l, in_span, dx, dy| {
-                let composited = in_span & kf.cmp_lt(ld(&last, l));
-                let Some((alpha, gauss, valid)) = sp.alpha(sp.power(dx, dy), composited) else { return };
-                let inv_one_minus = Lanes::ONE / (Lanes::ONE - alpha);
-                let t_now = ld(&t_cur, l);
-                let t_before = t_now * inv_one_minus;
-                let w = valid.blend(alpha * t_before, Lanes::ZERO);
-                let gcol = [ld(&gc[0], l), ld(&gc[1], l), ld(&gc[2], l)];
-                // dL/d(this Gaussian's colour and depth values) . (colour, depth).
-                let mut value = gcol[0] * col[0] + gcol[1] * col[1] + gcol[2] * col[2];
-                if AUX {
-                    let g_d = ld(&gd, l);
-                    value += g_d * z;
-                    acc_d += g_d * w;
+        let (mut m_x, mut m_y) = (L::ZERO, L::ZERO);
+        let (mut m_xx, mut m_xy, mut m_yy) = (L::ZERO, L::ZERO, L::ZERO);
+        for_each_chord::<L>(
+            sp,
+            &rect,
+            #[inline(always)]
+            |row, lo, hi| {
+                if k as u32 >= row_last[row as usize] {
+                    return;
                 }
-                for c in 0..3 {
-                    acc_col[c] += gcol[c] * w;
-                }
-                // d(out)/d(alpha) = value * T - (what lies behind) / (1 - alpha).
-                let behind_now = ld(&behind, l);
-                let mut dl_da = value * t_before - behind_now * inv_one_minus;
-                if AUX {
-                    dl_da += ld(&ga_t, l) * inv_one_minus;
-                }
-                st(&mut behind, l, value.mul_add(w, behind_now));
-                st(&mut t_cur, l, valid.blend(t_before, t_now));
-                // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
-                let free = valid & (Lanes::splat(sp.opacity) * gauss).cmp_le(Lanes::splat(ALPHA_MAX));
-                let dl_da = free.blend(dl_da, Lanes::ZERO);
-                acc_op += dl_da * gauss;
-                let dl_dpower = dl_da * alpha;
-                let (u, v) = (dl_dpower * dx, dl_dpower * dy);
-                m_x += u;
-                m_y += v;
-                m_xx = u.mul_add(dx, m_xx);
-                m_xy = u.mul_add(dy, m_xy);
-                m_yy = v.mul_add(dy, m_yy);
-            });
-        });
+                for_each_lane_group(
+                    sp,
+                    &rect,
+                    row,
+                    lo,
+                    hi,
+                    #[inline(always)]
+                    |l, in_span, dx, dy| {
+                        let composited = in_span & kf.cmp_lt(ld::<L>(&last, l));
+                        let Some((alpha, gauss, valid)) = sp.alpha(sp.power(dx, dy), composited) else { return };
+                        let inv_one_minus = L::ONE / (L::ONE - alpha);
+                        let t_now: L = ld(&t_cur, l);
+                        let t_before = t_now * inv_one_minus;
+                        let w = valid.select(alpha * t_before, L::ZERO);
+                        let gcol: [L; 3] = [ld(&gc[0], l), ld(&gc[1], l), ld(&gc[2], l)];
+                        // dL/d(this Gaussian's colour and depth values) . (colour, depth).
+                        let mut value = gcol[0] * col[0] + gcol[1] * col[1] + gcol[2] * col[2];
+                        if AUX {
+                            let g_d: L = ld(&gd, l);
+                            value += g_d * z;
+                            acc_d += g_d * w;
+                        }
+                        for c in 0..3 {
+                            acc_col[c] += gcol[c] * w;
+                        }
+                        // d(out)/d(alpha) = value * T - (what lies behind) / (1 - alpha).
+                        let behind_now: L = ld(&behind, l);
+                        let mut dl_da = value * t_before - behind_now * inv_one_minus;
+                        if AUX {
+                            dl_da += ld::<L>(&ga_t, l) * inv_one_minus;
+                        }
+                        st(&mut behind, l, value.mul_add(w, behind_now));
+                        // t_before >= t_now where valid (it divides by 1 - alpha), and
+                        // T >= 0: max() is the masked update without a masked store.
+                        st(&mut t_cur, l, t_now.max(valid & t_before));
+                        // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
+                        let free = valid & (L::splat(sp.opacity) * gauss).cmp_le(L::splat(ALPHA_MAX));
+                        let dl_da = free.select(dl_da, L::ZERO);
+                        acc_op += dl_da * gauss;
+                        let dl_dpower = dl_da * alpha;
+                        let (u, v) = (dl_dpower * dx, dl_dpower * dy);
+                        m_x += u;
+                        m_y += v;
+                        m_xx = u.mul_add(dx, m_xx);
+                        m_xy = u.mul_add(dy, m_xy);
+                        m_yy = v.mul_add(dy, m_yy);
+                    },
+                );
+            },
+        );
         // power = -(a dx^2 + c dy^2) / 2 - b dx dy with (dx, dy) = mean - pixel.
         let [a, b, c] = sp.conic;
         let (mx, my) = (m_x.reduce_add(), m_y.reduce_add());

@@ -5,6 +5,7 @@ use glam::{Mat4, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::lanes::{dispatch, Kernels, Lanes};
 use super::project::{project_one, ProjectionCamera, ALPHA_MIN};
 use super::raster::{ALPHA_MAX, TRANSMITTANCE_MIN};
 use super::*;
@@ -103,27 +104,79 @@ fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
 }
 
-#[test]
-fn tiled_renderer_matches_per_pixel_reference() {
+/// A scene of small and large Gaussians, some partly off-image, dense enough
+/// that pixels terminate early and opaque ones hit the 0.99 clamp.
+fn dense_scene() -> (GaussianSet, Camera, Vec3) {
     let mut rng = ChaCha8Rng::seed_from_u64(1);
-    // Small and large Gaussians, some partly off-image, dense enough that
-    // pixels terminate early and opaque ones hit the 0.99 clamp.
     let mut gs = random_set(&mut rng, 400, 3, 1.3, (-4.5, -2.0), (0.05, 0.99));
     let dense = random_set(&mut rng, 300, 3, 0.3, (-3.0, -2.0), (0.9, 0.999));
     for g in ParamGroup::ALL {
         let extra = dense.group(g).clone();
         gs.group_mut(g).extend(extra);
     }
-    let cam = camera(75, 53); // not a multiple of the tile size
-    let bg = Vec3::new(0.1, 0.6, 0.3);
+    (gs, camera(75, 53), Vec3::new(0.1, 0.6, 0.3)) // not a multiple of the tile size
+}
+
+#[test]
+fn tiled_renderer_matches_per_pixel_reference_with_every_kernel_set() {
+    let (gs, cam, bg) = dense_scene();
     let r = render(&gs, &cam, &RenderOptions { background: bg, sh_degree: None });
     let (c, a, d) = reference_render(&gs, &cam, bg);
     assert!(r.visible_count() > 500, "scene should be mostly visible, got {}", r.visible_count());
     assert!(a.iter().any(|v| *v > 1.0 - 2.0 * TRANSMITTANCE_MIN), "some pixels should terminate early");
     assert!(a.iter().any(|v| *v < 0.5), "some pixels should be thin");
-    assert!(max_abs_diff(&r.image.color, &c) < 1e-5, "colour differs by {}", max_abs_diff(&r.image.color, &c));
-    assert!(max_abs_diff(&r.image.alpha, &a) < 1e-5, "alpha differs by {}", max_abs_diff(&r.image.alpha, &a));
-    assert!(max_abs_diff(&r.image.depth, &d) < 1e-5, "depth differs by {}", max_abs_diff(&r.image.depth, &d));
+    for k in Kernels::available() {
+        let img = raster::rasterize_with(k, &r.bins, cam.width(), cam.height(), bg);
+        let name = k.name();
+        assert!(max_abs_diff(&img.color, &c) < 1e-5, "{name}: colour differs by {}", max_abs_diff(&img.color, &c));
+        assert!(max_abs_diff(&img.alpha, &a) < 1e-5, "{name}: alpha differs by {}", max_abs_diff(&img.alpha, &a));
+        assert!(max_abs_diff(&img.depth, &d) < 1e-5, "{name}: depth differs by {}", max_abs_diff(&img.depth, &d));
+    }
+}
+
+#[test]
+fn every_kernel_set_gives_the_portable_gradients() {
+    let (gs, cam, bg) = dense_scene();
+    let r = render(&gs, &cam, &RenderOptions { background: bg, sh_degree: None });
+    let n = (cam.width() * cam.height()) as usize;
+    let w = weights(n);
+    let (w_alpha, w_depth): (Vec<f32>, Vec<f32>) =
+        (0..n).map(|i| ((i as f32 * 0.37).sin(), (i as f32 * 0.11).cos())).unzip();
+    let grads = raster::TileGrads { color: &w.c, alpha: Some(&w_alpha), depth: Some(&w_depth) };
+    let run = |k| raster::rasterize_backward_with(k, &r.bins, cam.width(), cam.height(), bg, &r.image, &grads);
+    let portable = Kernels::named("portable").expect("the portable kernels run everywhere");
+    let (want, want_bg) = run(portable);
+    let flat = |g: &[super::project::ProjectedGrad]| -> Vec<f32> {
+        g.iter()
+            .flat_map(|g| {
+                [
+                    g.mean2d.x, g.mean2d.y, g.conic[0], g.conic[1], g.conic[2], g.color.x, g.color.y, g.color.z,
+                    g.opacity, g.depth,
+                ]
+            })
+            .collect()
+    };
+    let want_flat = flat(&want);
+    let scale = want_flat.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(scale > 0.0);
+    for k in Kernels::available() {
+        let (got, got_bg) = run(k);
+        let err = max_abs_diff(&flat(&got), &want_flat) / scale;
+        assert!(
+            err < 1e-4,
+            "{}: gradients differ from the portable kernels' by {err} (relative to the largest)",
+            k.name()
+        );
+        assert!((got_bg - want_bg).abs().max_element() < 1e-4 * want_bg.abs().max_element().max(1.0), "{}", k.name());
+    }
+}
+
+#[test]
+fn the_active_kernel_set_is_the_fastest_this_cpu_runs() {
+    let all = Kernels::available();
+    assert_eq!(all.last().map(|k| k.name()), Some("portable"), "{all:?}");
+    assert_eq!(Kernels::active(), all[0]);
+    assert!(Kernels::named("no-such-set").is_err());
 }
 
 #[test]
@@ -316,15 +369,17 @@ fn colour_only_backward_equals_backward_with_zero_aux_gradients() {
 }
 
 #[test]
-fn fast_exp_matches_f64_exp_on_nonpositive_arguments() {
-    let mut worst = 0.0f64;
-    for i in 0..=200_000 {
-        let x = -87.0 * i as f32 / 200_000.0;
-        let got = raster::exp_nonpositive(wide::f32x8::splat(x)).to_array()[0] as f64;
-        let want = (x as f64).exp();
-        worst = worst.max((got / want - 1.0).abs());
+fn fast_exp_matches_f64_exp_on_nonpositive_arguments_with_every_kernel_set() {
+    for k in Kernels::available() {
+        let exp = |x: f32| dispatch!(k, |L; x: f32| -> f32 { raster::exp_nonpositive(L::splat(x)).to_array()[0] });
+        let mut worst = 0.0f64;
+        for i in 0..=200_000 {
+            let x = -87.0 * i as f32 / 200_000.0;
+            let want = (x as f64).exp();
+            worst = worst.max((exp(x) as f64 / want - 1.0).abs());
+        }
+        assert!(worst < 4e-7, "{}: relative error {worst}", k.name());
+        let below = exp(-1e4);
+        assert!(below < 1e-37, "{}: far below the range the result is ~0, got {below}", k.name());
     }
-    assert!(worst < 4e-7, "relative error {worst}");
-    let below = raster::exp_nonpositive(wide::f32x8::splat(-1e4)).to_array()[0];
-    assert!(below < 1e-37, "far below the range the result is ~0, got {below}");
 }
