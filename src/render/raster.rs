@@ -578,11 +578,14 @@ fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [Proje
         let z = L::splat(sp.depth);
         let kf = L::splat(k as f32);
         let mut acc_col = [L::ZERO; 3];
-        let (mut acc_d, mut acc_op) = (L::ZERO, L::ZERO);
-        // Moments of dL/d(power) over the pixels (offsets dx, dy): the conic
-        // and 2D-mean gradients are linear in them.
-        let (mut m_x, mut m_y) = (L::ZERO, L::ZERO);
-        let (mut m_xx, mut m_xy, mut m_yy) = (L::ZERO, L::ZERO, L::ZERO);
+        let mut acc_d = L::ZERO;
+        // Moments of p = dL/d(power) over the pixels (offsets dx, dy): the
+        // conic, 2D-mean and opacity gradients are linear in them. dy is one
+        // value per row, so the lane groups sum only p, p dx and p dx^2 (a
+        // small live set: AVX2 has 16 vector registers), and each row folds
+        // its sums into the dy moments.
+        let (mut m_1, mut m_x, mut m_xx) = (L::ZERO, L::ZERO, L::ZERO);
+        let (mut m_y, mut m_xy, mut m_yy) = (L::ZERO, L::ZERO, L::ZERO);
         for_each_chord::<L>(
             sp,
             &rect,
@@ -591,6 +594,7 @@ fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [Proje
                 if k as u32 >= row_last[row as usize] {
                     return;
                 }
+                let (mut row_1, mut row_x) = (L::ZERO, L::ZERO);
                 for_each_lane_group(
                     sp,
                     &rect,
@@ -628,27 +632,32 @@ fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [Proje
                         st(&mut t_cur, l, t_now.max(valid & t_before));
                         // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
                         let free = valid & (L::splat(sp.opacity) * gauss).cmp_le(L::splat(ALPHA_MAX));
-                        let dl_da = free.select(dl_da, L::ZERO);
-                        acc_op += dl_da * gauss;
-                        let dl_dpower = dl_da * alpha;
-                        let (u, v) = (dl_dpower * dx, dl_dpower * dy);
-                        m_x += u;
-                        m_y += v;
+                        let dl_dpower = free & (dl_da * alpha);
+                        let u = dl_dpower * dx;
+                        row_1 += dl_dpower;
+                        row_x += u;
                         m_xx = u.mul_add(dx, m_xx);
-                        m_xy = u.mul_add(dy, m_xy);
-                        m_yy = v.mul_add(dy, m_yy);
                     },
                 );
+                let dy = L::splat(sp.mean.y - ((rect[1] + row) as f32 + 0.5));
+                m_1 += row_1;
+                m_x += row_x;
+                let row_y = row_1 * dy;
+                m_y += row_y;
+                m_yy = row_y.mul_add(dy, m_yy);
+                m_xy = row_x.mul_add(dy, m_xy);
             },
         );
-        // power = -(a dx^2 + c dy^2) / 2 - b dx dy with (dx, dy) = mean - pixel.
+        // power = -(a dx^2 + c dy^2) / 2 - b dx dy with (dx, dy) = mean - pixel,
+        // and dL/d(opacity) = sum dL/d(alpha) gauss = sum p / opacity where alpha is free
+        // (visible Gaussians have opacity >= ALPHA_MIN).
         let [a, b, c] = sp.conic;
         let (mx, my) = (m_x.reduce_add(), m_y.reduce_add());
         grads[k] = ProjectedGrad {
             mean2d: Vec2::new(-(a * mx + b * my), -(c * my + b * mx)),
             conic: [-0.5 * m_xx.reduce_add(), -m_xy.reduce_add(), -0.5 * m_yy.reduce_add()],
             color: Vec3::new(acc_col[0].reduce_add(), acc_col[1].reduce_add(), acc_col[2].reduce_add()),
-            opacity: acc_op.reduce_add(),
+            opacity: m_1.reduce_add() / sp.opacity,
             depth: acc_d.reduce_add(),
         };
     }
