@@ -202,13 +202,6 @@ pub fn pixel_evaluations(bins: &TileBins, width: u32, height: u32) -> u64 {
 }
 
 impl Splat {
-    /// Gaussian exponent on a lane group at offsets (dx, dy) from the mean.
-    #[inline(always)]
-    fn power<L: Lanes>(&self, dx: L, dy: L) -> L {
-        let [a, b, c] = self.conic;
-        L::splat(-0.5) * (L::splat(a) * dx * dx + L::splat(c) * dy * dy) - L::splat(b) * dx * dy
-    }
-
     /// The alpha on a lane group, the raw Gaussian value, and the lanes that
     /// pass the skip rules (`live`, power <= 0, alpha >= ALPHA_MIN); None when
     /// no lane passes (checked before the exp).
@@ -248,9 +241,9 @@ pub(crate) fn exp_nonpositive<L: Lanes>(x: L) -> L {
 }
 
 /// Visit the lane groups of tile row `row` that cover the chord [lo, hi) of
-/// Gaussian `p`: `f(l, in_span, dx, dy)` gets the group's first index in the
-/// tile's pixel arrays, the lanes inside the chord, and the offsets
-/// mean - pixel centre per lane.
+/// Gaussian `p`: `f(l, in_span, dx, power)` gets the group's first index in the
+/// tile's pixel arrays, the lanes inside the chord, the offsets dx = mean.x -
+/// pixel centre, and the Gaussian's exponent per lane.
 #[inline(always)]
 fn for_each_lane_group<L: Lanes>(
     p: &Splat,
@@ -260,14 +253,22 @@ fn for_each_lane_group<L: Lanes>(
     hi: f32,
     mut f: impl FnMut(usize, L, L, L),
 ) {
-    let dy = L::splat(p.mean.y - ((rect[1] + row) as f32 + 0.5));
-    let mut x0 = lo as u32 & !(LANE_STEP - 1);
-    while (x0 as f32) < hi {
-        let lane_x = L::splat(x0 as f32) + L::INDEX;
-        let in_span = lane_x.cmp_ge(L::splat(lo)) & lane_x.cmp_lt(L::splat(hi));
-        let dx = L::splat(p.mean.x) - (L::splat((rect[0] + x0) as f32) + L::INDEX + L::splat(0.5));
-        f((row * TILE + x0) as usize, in_span, dx, dy);
-        x0 += LANE_STEP;
+    // power = -(a dx^2 + c dy^2) / 2 - b dx dy = dx (-a/2 dx - b dy) - c/2 dy^2,
+    // with dy one value for the row: two FMAs per lane group.
+    let [a, b, c] = p.conic;
+    let dy = p.mean.y - ((rect[1] + row) as f32 + 0.5);
+    let (half_a, linear, constant) = (L::splat(-0.5 * a), L::splat(-b * dy), L::splat(-0.5 * c * dy * dy));
+    let dx_at_0 = L::splat(p.mean.x - rect[0] as f32 - 0.5) - L::INDEX;
+    let (lo_lanes, hi_lanes) = (L::splat(lo), L::splat(hi));
+    let mut x0 = (lo as u32 & !(LANE_STEP - 1)) as f32;
+    while x0 < hi {
+        let x = L::splat(x0);
+        let lane_x = x + L::INDEX;
+        let in_span = lane_x.cmp_ge(lo_lanes) & lane_x.cmp_lt(hi_lanes);
+        let dx = dx_at_0 - x;
+        let power = dx.mul_add(half_a.mul_add(dx, linear), constant);
+        f((row * TILE) as usize + x0 as usize, in_span, dx, power);
+        x0 += LANES as f32;
     }
 }
 
@@ -403,11 +404,11 @@ fn forward_tile<L: Lanes>(bins: &TileBins, t: usize, width: u32, height: u32) ->
                     lo,
                     hi,
                     #[inline(always)]
-                    |l, in_span, dx, dy| {
+                    |l, in_span, _, power| {
                         // A finished pixel keeps its transmittance negated (see below).
                         let t_now: L = ld(&res.t, l);
                         let live = in_span & t_now.cmp_gt(L::ZERO);
-                        let Some((alpha, _, valid)) = p.alpha(p.power(dx, dy), live) else { return };
+                        let Some((alpha, _, valid)) = p.alpha(power, live) else { return };
                         let t_next = t_now * (L::ONE - alpha);
                         let term = valid & t_next.cmp_lt(L::splat(TRANSMITTANCE_MIN));
                         let contrib = valid & !term;
@@ -602,9 +603,9 @@ fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [Proje
                     lo,
                     hi,
                     #[inline(always)]
-                    |l, in_span, dx, dy| {
+                    |l, in_span, dx, power| {
                         let composited = in_span & kf.cmp_lt(ld::<L>(&last, l));
-                        let Some((alpha, gauss, valid)) = sp.alpha(sp.power(dx, dy), composited) else { return };
+                        let Some((alpha, gauss, valid)) = sp.alpha(power, composited) else { return };
                         let inv_one_minus = L::ONE / (L::ONE - alpha);
                         let t_now: L = ld(&t_cur, l);
                         let t_before = t_now * inv_one_minus;
