@@ -109,7 +109,7 @@ impl CameraFile {
     pub fn to_camera(&self) -> std::result::Result<Camera, String> {
         let max = crate::render::raster::MAX_IMAGE_SIDE;
         if self.width == 0 || self.height == 0 || self.width > max || self.height > max {
-            return Err(format!("image size must be 1..={max} px on a side, got {}x{}", self.width, self.height));
+            return Err(format!("image size must be 1 to {max} px on a side, got {}x{}", self.width, self.height));
         }
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !(v.is_finite() && v > 0.0) {

@@ -73,7 +73,15 @@ fn bad_camera_and_ply_files_name_the_file() {
     write_camera(&p, &empty);
     let o = aim_render(&ply, &p, &out, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("empty.json") && err.contains("positive"), "{err}");
+    assert!(!o.status.success() && err.contains("empty.json") && err.contains("1 to 65535 px"), "{err}");
+
+    let mut huge = good.clone();
+    huge.height = 70_000;
+    let p = dir.join("huge.json");
+    write_camera(&p, &huge);
+    let o = aim_render(&ply, &p, &out, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("huge.json") && err.contains("x70000"), "{err}");
 
     let cam = dir.join("camera.json");
     write_camera(&cam, &good);
