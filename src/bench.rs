@@ -237,12 +237,13 @@ impl MachineInfo {
                 .and_then(|l| l.split(':').nth(1))
                 .map(|m| m.trim().to_string())
         });
+        let kernels = Kernels::active();
         Self {
             cpu,
             cpu_features: runtime_features(),
             compiled_features: compiled_features(),
-            kernel_set: Kernels::active().name(),
-            kernel_description: Kernels::active().description(),
+            kernel_set: kernels.name(),
+            kernel_description: kernels.description(),
             threads: rayon::current_num_threads(),
         }
     }

@@ -270,7 +270,7 @@ impl Lanes for Portable {
 }
 
 #[cfg(target_arch = "x86_64")]
-pub use x86::Avx;
+pub(crate) use x86::Avx;
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
@@ -284,9 +284,10 @@ mod x86 {
     /// Safety: every method runs AVX2/FMA instructions. Values of this type
     /// exist only inside the kernel entry points of [`super::Kernels`] that
     /// are compiled with those features and entered after the CPU was found
-    /// to have them; nothing else names the type.
+    /// to have them; the type is private to the crate, and nothing else in
+    /// it names the type.
     #[derive(Clone, Copy, Debug)]
-    pub struct Avx(__m256);
+    pub(crate) struct Avx(__m256);
 
     macro_rules! avx_op {
         ($trait:ident, $method:ident, $intrinsic:ident) => {

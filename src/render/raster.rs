@@ -202,6 +202,12 @@ pub fn pixel_evaluations(bins: &TileBins, width: u32, height: u32) -> u64 {
 }
 
 impl Splat {
+    /// dy = mean.y - pixel centre on tile row `row` of rect `rect`.
+    #[inline(always)]
+    fn row_dy(&self, rect: &[u32; 4], row: u32) -> f32 {
+        self.mean.y - ((rect[1] + row) as f32 + 0.5)
+    }
+
     /// The alpha on a lane group, the raw Gaussian value, and the lanes that
     /// pass the skip rules (`live`, power <= 0, alpha >= ALPHA_MIN); None when
     /// no lane passes (checked before the exp).
@@ -256,7 +262,7 @@ fn for_each_lane_group<L: Lanes>(
     // power = -(a dx^2 + c dy^2) / 2 - b dx dy = dx (-a/2 dx - b dy) - c/2 dy^2,
     // with dy one value for the row: two FMAs per lane group.
     let [a, b, c] = p.conic;
-    let dy = p.mean.y - ((rect[1] + row) as f32 + 0.5);
+    let dy = p.row_dy(rect, row);
     let (half_a, linear, constant) = (L::splat(-0.5 * a), L::splat(-b * dy), L::splat(-0.5 * c * dy * dy));
     let dx_at_0 = L::splat(p.mean.x - rect[0] as f32 - 0.5) - L::INDEX;
     let (lo_lanes, hi_lanes) = (L::splat(lo), L::splat(hi));
@@ -482,15 +488,13 @@ pub fn rasterize_backward_with(
         .enumerate()
         .map(|(t, grads)| {
             let tile = &TileInput { t, bins, width, height, background, fwd };
-            if g.alpha.is_some() || g.depth.is_some() {
-                dispatch!(kernels, |L; tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads| -> Vec3 {
+            dispatch!(kernels, |L; tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads| -> Vec3 {
+                if g.alpha.is_some() || g.depth.is_some() {
                     backward_tile::<true, L>(tile, grads, g)
-                })
-            } else {
-                dispatch!(kernels, |L; tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads| -> Vec3 {
+                } else {
                     backward_tile::<false, L>(tile, grads, g)
-                })
-            }
+                }
+            })
         })
         .collect();
 
@@ -640,7 +644,7 @@ fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [Proje
                         m_xx = u.mul_add(dx, m_xx);
                     },
                 );
-                let dy = L::splat(sp.mean.y - ((rect[1] + row) as f32 + 0.5));
+                let dy = L::splat(sp.row_dy(&rect, row));
                 m_1 += row_1;
                 m_x += row_x;
                 let row_y = row_1 * dy;
