@@ -305,6 +305,10 @@ fn run_node_track(
     if tracker.search_end_poses(&end_views) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
     }
+    // Parts the tracking never grouped, found where the end state shows the start state moved.
+    if tracker.discover_on_end_state(&frames, &end_views) > 0 {
+        tracker.merge_redundant_parts(&frames, &end_views);
+    }
     if tracker.clean_parts(&frames, &end_views) > 0 {
         tracker.refit_end_poses(&end_views);
     }

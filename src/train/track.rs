@@ -31,6 +31,8 @@ use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::{backward, render, RenderOptions};
 use crate::splat::GaussianSet;
 
+mod end_state;
+
 /// Settings of the node tracker.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -1140,115 +1142,121 @@ impl NodeTracker {
     /// starts with a refit of all end poses (the baseline its candidates are
     /// refitted against), so the end poses are refitted even when it returns 0.
     pub fn search_end_poses(&mut self, end_views: &[TrainView]) -> usize {
+        let parts = self.articulation.as_ref().map_or(0, |a| a.centres.len());
+        let mut changed = 0;
+        for p in 0..parts {
+            changed += usize::from(self.search_part_end_pose(p, end_views));
+        }
+        changed
+    }
+
+    /// The global search of part `p`'s end pose (see `search_end_poses`); whether
+    /// a searched pose replaced the one it had.
+    fn search_part_end_pose(&mut self, p: usize, end_views: &[TrainView]) -> bool {
         const VIEWS: usize = 6;
         const SEARCH_REFINED: usize = 2;
         let step = self.config.track.search_step;
-        let Some(mut parts) = self.articulation.clone() else {
-            return 0;
+        let Some(parts) = self.articulation.clone() else {
+            return false;
         };
         if step <= 0.0 || end_views.is_empty() || self.config.track.end_iterations == 0 {
-            return 0;
+            return false;
         }
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
         let last = parts.poses.len() - 1;
         let means: Vec<Vec3> = (0..self.gaussians.len()).map(|i| self.gaussians.mean(i)).collect();
         let principal = principal_axes(&means);
-        let mut changed = 0;
-        for p in 0..parts.centres.len() {
-            let members: Vec<Vec3> =
-                self.gaussians_labelled(&parts.node_part, p + 1).into_iter().map(|i| means[i]).collect();
-            if members.len() < 3 {
-                continue;
-            }
-            let c = parts.centres[p];
-            let own = extract_joint(&parts.poses[last][p].to_rigid(c), c.as_dvec3()).axis.as_vec3();
-            // Each candidate axis with the two directions across it that bound the
-            // part's box (the object's other principal axes, so the pivots are the
-            // box's edges).
-            let mut frames: Vec<(Vec3, Vec3, Vec3)> =
-                (0..3).map(|k| (principal[k], principal[(k + 1) % 3], principal[(k + 2) % 3])).collect();
-            if principal.iter().all(|a| a.dot(own).abs() < 0.95) {
-                let (u, v) = own.any_orthonormal_pair();
-                frames.push((own, u, v));
-            }
-            let mut scored: Vec<(f32, NodePose)> = Vec::new();
-            for (a, u, v) in &frames {
-                let (a, u, v) = (a, *u, *v);
-                let extent = |d: Vec3| {
-                    let proj: Vec<f32> = members.iter().map(|m| (*m - c).dot(d)).collect();
-                    (
-                        proj.iter().copied().fold(f32::INFINITY, f32::min),
-                        proj.iter().copied().fold(f32::NEG_INFINITY, f32::max),
-                    )
-                };
-                let ((u0, u1), (v0, v1), (a0, a1)) = (extent(u), extent(v), extent(*a));
-                let mut hypotheses = Vec::new();
-                for (pu, pv) in [(u0, v0), (u0, v1), (u1, v0), (u1, v1)] {
-                    let pivot = c + pu * u + pv * v;
-                    let turns = (std::f32::consts::PI / step).floor() as i32;
-                    for k in (-turns..=turns).filter(|&k| k != 0) {
-                        let r = Quat::from_axis_angle(*a, k as f32 * step);
-                        hypotheses.push(NodePose { rotation: r, translation: r * (c - pivot) + pivot - c });
-                    }
-                }
-                let length = (a1 - a0).max(u1 - u0).max(v1 - v0);
-                for k in 1..=8 {
-                    for sign in [-1.0f32, 1.0] {
-                        hypotheses.push(NodePose {
-                            rotation: Quat::IDENTITY,
-                            translation: *a * (sign * length * k as f32 / 8.0),
-                        });
-                    }
-                }
-                for h in hypotheses {
-                    let mut trial = parts.clone();
-                    trial.poses[last][p] = h;
-                    scored.push((self.articulated_loss(&trial, &trial.node_part, &check), h));
-                }
-            }
-            scored.sort_by(|a, b| a.0.total_cmp(&b.0));
-            // A coarse hypothesis is a grid point, the tracked pose a refined one:
-            // compare them only after both are refined (a raw grid point never won).
-            let candidates = distinct_poses(&scored, SEARCH_REFINED, 2.0 * step, 0.1 * self.object_size);
-            tracing::info!(
-                part = p + 1,
-                best = scored.first().map(|s| s.0),
-                "stage II: a global search of a part's end pose"
-            );
-            let Some(mut best_loss) = self.refit_end_poses(end_views) else { continue };
-            let mut best_state = (self.articulation.clone(), self.knots[last].clone());
-            let tracked_refit = best_state.clone();
-            let mut replaced = false;
-            // Each candidate starts from the tracked refit; a later one must beat the
-            // best so far (the tracked pose or an earlier candidate) by the margin.
-            for pose in candidates {
-                let mut searched = tracked_refit.0.clone().expect("parts");
-                searched.poses[last][p] = pose;
-                self.knots[last] = tracked_refit.1.clone();
-                searched.carry(&self.node_centres, &searched.poses[last].clone(), &mut self.knots[last]);
-                self.articulation = Some(searched);
-                let Some(loss) = self.refit_end_poses(end_views) else { continue };
-                // The tracked pose stands unless a searched one explains the end
-                // state clearly better (storage seed 2: a drawer turned 46 degrees
-                // for a 0.4 % lower loss).
-                if loss < best_loss * (1.0 - self.config.track.merge_tolerance) {
-                    tracing::info!(
-                        part = p + 1,
-                        before = best_loss,
-                        after = loss,
-                        "stage II: a part's end pose replaced by a searched one"
-                    );
-                    best_loss = loss;
-                    best_state = (self.articulation.clone(), self.knots[last].clone());
-                    replaced = true;
-                }
-            }
-            changed += usize::from(replaced);
-            self.articulation = best_state.0;
-            self.knots[last] = best_state.1;
-            parts = self.articulation.clone().expect("parts");
+        let members: Vec<Vec3> =
+            self.gaussians_labelled(&parts.node_part, p + 1).into_iter().map(|i| means[i]).collect();
+        if members.len() < 3 {
+            return false;
         }
-        changed
+        let c = parts.centres[p];
+        let own = extract_joint(&parts.poses[last][p].to_rigid(c), c.as_dvec3()).axis.as_vec3();
+        // Each candidate axis with the two directions across it that bound the
+        // part's box (the object's other principal axes, so the pivots are the
+        // box's edges).
+        let mut frames: Vec<(Vec3, Vec3, Vec3)> =
+            (0..3).map(|k| (principal[k], principal[(k + 1) % 3], principal[(k + 2) % 3])).collect();
+        if principal.iter().all(|a| a.dot(own).abs() < 0.95) {
+            let (u, v) = own.any_orthonormal_pair();
+            frames.push((own, u, v));
+        }
+        let mut scored: Vec<(f32, NodePose)> = Vec::new();
+        for (a, u, v) in &frames {
+            let (a, u, v) = (a, *u, *v);
+            let extent = |d: Vec3| {
+                let proj: Vec<f32> = members.iter().map(|m| (*m - c).dot(d)).collect();
+                (
+                    proj.iter().copied().fold(f32::INFINITY, f32::min),
+                    proj.iter().copied().fold(f32::NEG_INFINITY, f32::max),
+                )
+            };
+            let ((u0, u1), (v0, v1), (a0, a1)) = (extent(u), extent(v), extent(*a));
+            let mut hypotheses = Vec::new();
+            for (pu, pv) in [(u0, v0), (u0, v1), (u1, v0), (u1, v1)] {
+                let pivot = c + pu * u + pv * v;
+                let turns = (std::f32::consts::PI / step).floor() as i32;
+                for k in (-turns..=turns).filter(|&k| k != 0) {
+                    let r = Quat::from_axis_angle(*a, k as f32 * step);
+                    hypotheses.push(NodePose { rotation: r, translation: r * (c - pivot) + pivot - c });
+                }
+            }
+            let length = (a1 - a0).max(u1 - u0).max(v1 - v0);
+            for k in 1..=8 {
+                for sign in [-1.0f32, 1.0] {
+                    hypotheses.push(NodePose {
+                        rotation: Quat::IDENTITY,
+                        translation: *a * (sign * length * k as f32 / 8.0),
+                    });
+                }
+            }
+            for h in hypotheses {
+                let mut trial = parts.clone();
+                trial.poses[last][p] = h;
+                scored.push((self.articulated_loss(&trial, &trial.node_part, &check), h));
+            }
+        }
+        scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+        // A coarse hypothesis is a grid point, the tracked pose a refined one:
+        // compare them only after both are refined (a raw grid point never won).
+        let candidates = distinct_poses(&scored, SEARCH_REFINED, 2.0 * step, 0.1 * self.object_size);
+        tracing::info!(
+            part = p + 1,
+            best = scored.first().map(|s| s.0),
+            "stage II: a global search of a part's end pose"
+        );
+        let Some(mut best_loss) = self.refit_end_poses(end_views) else { return false };
+        let mut best_state = (self.articulation.clone(), self.knots[last].clone());
+        let tracked_refit = best_state.clone();
+        let mut replaced = false;
+        // Each candidate starts from the tracked refit; a later one must beat the
+        // best so far (the tracked pose or an earlier candidate) by the margin.
+        for pose in candidates {
+            let mut searched = tracked_refit.0.clone().expect("parts");
+            searched.poses[last][p] = pose;
+            self.knots[last] = tracked_refit.1.clone();
+            searched.carry(&self.node_centres, &searched.poses[last].clone(), &mut self.knots[last]);
+            self.articulation = Some(searched);
+            let Some(loss) = self.refit_end_poses(end_views) else { continue };
+            // The tracked pose stands unless a searched one explains the end
+            // state clearly better (storage seed 2: a drawer turned 46 degrees
+            // for a 0.4 % lower loss).
+            if loss < best_loss * (1.0 - self.config.track.merge_tolerance) {
+                tracing::info!(
+                    part = p + 1,
+                    before = best_loss,
+                    after = loss,
+                    "stage II: a part's end pose replaced by a searched one"
+                );
+                best_loss = loss;
+                best_state = (self.articulation.clone(), self.knots[last].clone());
+                replaced = true;
+            }
+        }
+        self.articulation = best_state.0;
+        self.knots[last] = best_state.1;
+        replaced
     }
 
     /// Occam's test on pieces of parts: each part's nodes are cut into spatial
