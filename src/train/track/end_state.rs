@@ -32,7 +32,7 @@ const PATH_STEPS: usize = 10;
 impl NodeTracker {
     /// Look for parts among the base's nodes on `end_views` (time 1) and add
     /// those whose searched end pose explains the end state; returns how many
-    /// were added. Needs end-state views and the global search (`search_step`).
+    /// were added or grown. Needs end-state views and the global search (`search_step`).
     pub fn discover_on_end_state(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
         if end_views.is_empty() || self.config.track.search_step <= 0.0 || self.config.track.end_iterations == 0 {
             return 0;
@@ -69,6 +69,20 @@ impl NodeTracker {
             if self.search_part_end_pose(p, end_views)
                 && self.looks_right_where_moved(p, nodes.len(), threshold, &views)
             {
+                if let Some(q) = self.joins_a_part(p, &views) {
+                    // A piece of a part already found (its edge, seen moved): no new part.
+                    let mut parts = before.0.expect("parts set above");
+                    nodes.iter().for_each(|&k| parts.node_part[k] = q + 1);
+                    self.knots[last] = before.1;
+                    self.set_articulation(parts);
+                    tracing::info!(
+                        part = q + 1,
+                        nodes = nodes.len(),
+                        "stage II: nodes found on the end state join a part"
+                    );
+                    added += 1;
+                    continue;
+                }
                 self.fit_path(p, frames);
                 tracing::info!(part = p + 1, nodes = nodes.len(), "stage II: a part found on the end state");
                 added += 1;
@@ -209,6 +223,23 @@ impl NodeTracker {
             "stage II: base nodes the end state shows moved"
         );
         (groups, threshold)
+    }
+
+    /// The part (other than the last, `p`) whose motion carries part `p`'s nodes
+    /// to explain `views` as well as `p`'s own end pose does (within
+    /// `merge_tolerance`), the best such; Occam's test on the end state, before
+    /// `p` gets a path of its own.
+    fn joins_a_part(&self, p: usize, views: &[&TrainView]) -> Option<usize> {
+        let parts = self.articulation.as_ref().expect("the part searched");
+        let own = self.articulated_loss(parts, &parts.node_part, views);
+        (0..p)
+            .map(|q| {
+                let trial: Vec<usize> = parts.node_part.iter().map(|&l| if l == p + 1 { q + 1 } else { l }).collect();
+                (q, self.articulated_loss(parts, &trial, views))
+            })
+            .filter(|(_, loss)| *loss <= own * (1.0 + self.config.track.merge_tolerance))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(q, _)| q)
     }
 
     /// Whether part `p` (found from a group of `candidate_nodes` nodes whose
