@@ -283,18 +283,18 @@ impl NodeTracker {
             else {
                 break;
             };
-            let best = (0..=PATH_STEPS)
-                .map(|s| {
-                    let pose = NodePose::from_rigid(&screw_fraction(&end, s as f64 / PATH_STEPS as f64), c);
-                    let mut trial = parts.clone();
-                    trial.poses[k][p] = pose;
-                    // The frame's time may fall between knots: judge the knot's pose on its own.
-                    let mut at_knot = frame.clone();
-                    at_knot.time = Some(t);
-                    (self.articulated_loss(&trial, &trial.node_part, &[&at_knot]), pose)
-                })
-                .min_by(|a, b| a.0.total_cmp(&b.0))
-                .expect("path steps");
+            // The frame's time may fall between knots: judge the knot's pose on its own.
+            let mut at_knot = frame.clone();
+            at_knot.time = Some(t);
+            let mut best = (f32::INFINITY, NodePose::IDENTITY);
+            for s in 0..=PATH_STEPS {
+                let pose = NodePose::from_rigid(&screw_fraction(&end, s as f64 / PATH_STEPS as f64), c);
+                parts.poses[k][p] = pose;
+                let loss = self.articulated_loss(&parts, &parts.node_part, &[&at_knot]);
+                if loss < best.0 {
+                    best = (loss, pose);
+                }
+            }
             parts.poses[k][p] = best.1;
         }
         self.set_articulation(parts);
