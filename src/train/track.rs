@@ -1145,14 +1145,16 @@ impl NodeTracker {
         let parts = self.articulation.as_ref().map_or(0, |a| a.centres.len());
         let mut changed = 0;
         for p in 0..parts {
-            changed += usize::from(self.search_part_end_pose(p, end_views));
+            changed += usize::from(self.search_part_end_pose(p, end_views, false));
         }
         changed
     }
 
     /// The global search of part `p`'s end pose (see `search_end_poses`); whether
-    /// a searched pose replaced the one it had.
-    fn search_part_end_pose(&mut self, p: usize, end_views: &[TrainView]) -> bool {
+    /// a searched pose replaced the one it had. `from_rest`: the part is a
+    /// candidate at rest (found on the end state), given up before the refits
+    /// when no coarse hypothesis explains the end state better than rest does.
+    fn search_part_end_pose(&mut self, p: usize, end_views: &[TrainView], from_rest: bool) -> bool {
         const VIEWS: usize = 6;
         const SEARCH_REFINED: usize = 2;
         let step = self.config.track.search_step;
@@ -1218,6 +1220,16 @@ impl NodeTracker {
             }
         }
         scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+        if from_rest {
+            // The refits cost a minute; a group no grid pose moves for the better
+            // (a fragment of a panel, a shading change) is not worth them.
+            let rest = self.articulated_loss(&parts, &parts.node_part, &check);
+            let best = scored.first().map_or(f32::INFINITY, |s| s.0);
+            tracing::info!(part = p + 1, rest, best, "stage II: a candidate's coarse search against rest");
+            if best >= rest {
+                return false;
+            }
+        }
         // A coarse hypothesis is a grid point, the tracked pose a refined one:
         // compare them only after both are refined (a raw grid point never won).
         let candidates = distinct_poses(&scored, SEARCH_REFINED, 2.0 * step, 0.1 * self.object_size);

@@ -66,7 +66,7 @@ impl NodeTracker {
             trial.poses.iter_mut().for_each(|k| k.push(NodePose::IDENTITY));
             let before = (self.articulation.clone(), self.knots[last].clone());
             self.set_articulation(trial);
-            if self.search_part_end_pose(p, end_views)
+            if self.search_part_end_pose(p, end_views, true)
                 && self.looks_right_where_moved(p, nodes.len(), threshold, &views)
             {
                 if let Some(q) = self.joins_a_part(p, &views) {
@@ -182,7 +182,7 @@ impl NodeTracker {
             return (Vec::new(), 0.0);
         }
         seen.sort_by(f32::total_cmp);
-        let threshold = MIN_RESIDUAL.max(RESIDUAL_RATIO * seen[seen.len() / 2]);
+        let threshold = residual_threshold(&seen);
         let n = self.node_centres.len();
         let high: Vec<bool> = (0..n).map(|k| parts.node_part[k] == 0 && !tried[k] && residual[k] > threshold).collect();
         let mut graph = vec![Vec::new(); n];
@@ -249,21 +249,70 @@ impl NodeTracker {
     /// had wrong (the unseen inside of a closed body, revealed by the motion) out
     /// of sight, or onto other wrong content, does not pass.
     fn looks_right_where_moved(&self, p: usize, candidate_nodes: usize, threshold: f32, views: &[&TrainView]) -> bool {
-        let parts = self.articulation.as_ref().expect("the part searched");
+        let (seen, median) = self.residual_where_moved(p, views);
+        let passes = 2 * seen >= candidate_nodes && median < threshold;
+        tracing::info!(part = p + 1, seen, median, threshold, passes, "stage II: the searched part where it moved");
+        passes
+    }
+
+    /// How many of part `p`'s nodes `views` see at the last knot, and the median
+    /// of their residuals (relit, see `node_residuals`).
+    fn residual_where_moved(&self, p: usize, views: &[&TrainView]) -> (usize, f32) {
+        let parts = self.articulation.as_ref().expect("the part judged");
         let residual = self.node_residuals(parts, p + 1, views, true);
         let mut seen: Vec<f32> = residual.into_iter().filter(|r| r.is_finite()).collect();
         seen.sort_by(f32::total_cmp);
-        let median = seen.get(seen.len() / 2).copied().unwrap_or(f32::INFINITY);
-        let passes = 2 * seen.len() >= candidate_nodes && median < threshold;
-        tracing::info!(
-            part = p + 1,
-            seen = seen.len(),
-            median,
-            threshold,
-            passes,
-            "stage II: the searched part where it moved"
-        );
-        passes
+        (seen.len(), seen.get(seen.len() / 2).copied().unwrap_or(f32::INFINITY))
+    }
+
+    /// The tracked parts judged on the end state as a part found there is
+    /// (`looks_right_where_moved`), after their end poses were searched: a part
+    /// most of whose nodes `end_views` do not see where it moved, or whose seen
+    /// nodes' median residual (relit) is above the threshold the base's residual
+    /// sets, moved content the start state had wrong out of sight or onto content
+    /// it lacked (the inside of a body the motion revealed), or is a piece whose
+    /// motion no end pose explains; its nodes go back to the base (and may be
+    /// found on the end state as a part of their own). Returns the parts dropped.
+    pub fn drop_parts_that_look_wrong(&mut self, end_views: &[TrainView]) -> usize {
+        let Some(parts) = self.articulation.clone() else {
+            return 0;
+        };
+        if end_views.is_empty() || parts.centres.is_empty() {
+            return 0;
+        }
+        let views = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
+        let mut base: Vec<f32> =
+            self.node_residuals(&parts, 0, &views, false).into_iter().filter(|r| r.is_finite()).collect();
+        if base.is_empty() {
+            return 0;
+        }
+        base.sort_by(f32::total_cmp);
+        let threshold = residual_threshold(&base);
+        let mut node_part = parts.node_part.clone();
+        let mut dropped = 0;
+        for p in 0..parts.centres.len() {
+            let nodes = parts.node_part.iter().filter(|&&l| l == p + 1).count();
+            let (seen, median) = self.residual_where_moved(p, &views);
+            // The test a part found on the end state passes (`looks_right_where_moved`).
+            let wrong = 2 * seen < nodes || median >= threshold;
+            tracing::info!(
+                part = p + 1,
+                nodes,
+                seen,
+                median,
+                threshold,
+                wrong,
+                "stage II: a tracked part where it moved"
+            );
+            if wrong {
+                node_part.iter_mut().filter(|l| **l == p + 1).for_each(|l| *l = 0);
+                dropped += 1;
+            }
+        }
+        if dropped > 0 {
+            self.set_articulation(parts.relabelled(node_part));
+        }
+        dropped
     }
 
     /// Part `p`'s poses at the knots between rest and its end pose, each the
@@ -299,6 +348,12 @@ impl NodeTracker {
         }
         self.set_articulation(parts);
     }
+}
+
+/// The residual above which a node is wrong: `MIN_RESIDUAL`, or `RESIDUAL_RATIO`
+/// times the median of `sorted` (the seen base nodes' residuals, ascending).
+fn residual_threshold(sorted: &[f32]) -> f32 {
+    MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 2])
 }
 
 /// The rigid motion a fraction `f` of the way along the screw motion from rest to `m`.
@@ -428,6 +483,50 @@ mod tests {
         let end_views = views_of(&rest, 1.0, 16);
         assert_eq!(tracker.discover_on_end_state(&views_of(&rest, 0.5, 1), &end_views), 0);
         assert!(tracker.articulation.is_none(), "no part, and the free trajectories kept");
+    }
+
+    #[test]
+    fn a_tracked_part_that_looks_wrong_where_it_moved_goes_back_to_the_base() {
+        let (mut tracker, _, end) = plates(1.0);
+        let n = tracker.node_centres.len();
+        // Part 1: the door, at its true end pose (a quarter turn about the y axis
+        // through the origin). Part 2: a strip of the base, given a turn it never made.
+        let node_part: Vec<usize> = tracker
+            .node_centres
+            .iter()
+            .map(|c| {
+                if c.x > 0.0 {
+                    1
+                } else if c.x < -0.3 {
+                    2
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let centre = |p: usize| {
+            let (sum, count) = (0..n)
+                .filter(|&k| node_part[k] == p)
+                .fold((Vec3::ZERO, 0), |(s, c), k| (s + tracker.node_centres[k], c + 1));
+            sum / count as f32
+        };
+        let turn = |angle: f32, pivot: Vec3, c: Vec3| {
+            let rotation = Quat::from_rotation_y(angle);
+            NodePose { rotation, translation: rotation * (c - pivot) + pivot - c }
+        };
+        let (door, strip) = (centre(1), centre(2));
+        let poses = vec![
+            vec![NodePose::IDENTITY; 2],
+            vec![NodePose::IDENTITY; 2],
+            vec![turn(-std::f32::consts::FRAC_PI_2, Vec3::ZERO, door), turn(1.0, Vec3::new(-0.3, 0.0, 0.0), strip)],
+        ];
+        let door_nodes = node_part.iter().filter(|&&l| l == 1).count();
+        tracker.set_articulation(TrackedParts { node_part, centres: vec![door, strip], poses });
+        assert_eq!(tracker.drop_parts_that_look_wrong(&views_of(&end, 1.0, 16)), 1, "the strip dropped");
+        let parts = tracker.articulation.clone().expect("parts");
+        assert_eq!(parts.centres.len(), 1, "the door kept");
+        assert_eq!(parts.node_part.iter().filter(|&&l| l == 1).count(), door_nodes, "the door's nodes unchanged");
+        assert_eq!(parts.node_part.iter().filter(|&&l| l > 1).count(), 0);
     }
 
     #[test]
