@@ -40,6 +40,8 @@ pub struct Render {
     pub width: u32,
     pub height: u32,
     pub camera: Camera,
+    /// The projection the pixels were rendered with (the backward pass reuses it).
+    pub projection: ProjectionCamera,
     pub options: RenderOptions,
     pub sh_degree: u32,
     /// Row-major RGB (background included), alpha, accumulated depth (see [`raster::RasterOutput`]).
@@ -85,13 +87,34 @@ fn active_degree(gs: &GaussianSet, opts: &RenderOptions) -> u32 {
 
 /// Render `gs` from `camera`.
 pub fn render(gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> Render {
-    let pc = ProjectionCamera::new(camera);
+    render_region(gs, camera, [0, 0, camera.width(), camera.height()], options)
+}
+
+/// Render the pixels [x0, x1) x [y0, y1) of `camera`'s image (`region` = [x0, y0,
+/// x1, y1], inside the image): the values `render` gives those pixels, at the
+/// cost of the region. The result is the region's image (its `camera` the
+/// region's), and its backward pass gives the gradients of a loss on those pixels.
+pub fn render_region(gs: &GaussianSet, camera: &Camera, region: [u32; 4], options: &RenderOptions) -> Render {
+    let [x0, y0, x1, y1] = region;
+    assert!(
+        x0 < x1 && y0 < y1 && x1 <= camera.width() && y1 <= camera.height(),
+        "region {region:?} outside the {}x{} image",
+        camera.width(),
+        camera.height()
+    );
+    let projection = ProjectionCamera::new(camera).region(region);
     let deg = active_degree(gs, options);
-    let projected: Vec<_> = (0..gs.len()).into_par_iter().map(|i| project::project_one(gs, i, &pc, deg)).collect();
-    let (w, h) = (camera.width(), camera.height());
+    let projected: Vec<_> =
+        (0..gs.len()).into_par_iter().map(|i| project::project_one(gs, i, &projection, deg)).collect();
+    let (w, h) = (x1 - x0, y1 - y0);
     let bins = raster::bin_tiles(&projected, w, h);
     let image = raster::rasterize(&bins, w, h, options.background);
-    Render { width: w, height: h, camera: *camera, options: *options, sh_degree: deg, image, projected, bins }
+    let mut camera = *camera;
+    camera.intrinsics.width = w;
+    camera.intrinsics.height = h;
+    camera.intrinsics.cx -= x0 as f32;
+    camera.intrinsics.cy -= y0 as f32;
+    Render { width: w, height: h, camera, projection, options: *options, sh_degree: deg, image, projected, bins }
 }
 
 /// Backward pass: `grad_color` is dL/d(RGB) (row-major, 3 per pixel); optional
@@ -115,7 +138,7 @@ pub fn backward(
         grad_alpha,
         grad_depth,
     );
-    let pc = ProjectionCamera::new(&fwd.camera);
+    let pc = fwd.projection;
     let n = gs.len();
     let (raw, sh_rest) = project::project_backward_all(gs, &fwd.projected, &pc, fwd.sh_degree, &proj_grads);
 

@@ -78,6 +78,18 @@ impl ProjectionCamera {
         }
     }
 
+    /// The same projection onto the pixels `region` = [x0, y0, x1, y1) of the
+    /// image: pixel (x0, y0) becomes (0, 0). The Jacobian's limits stay the whole
+    /// image's, so every Gaussian projects as it does for the whole image.
+    pub fn region(mut self, region: [u32; 4]) -> Self {
+        let [x0, y0, x1, y1] = region;
+        self.cx -= x0 as f32;
+        self.cy -= y0 as f32;
+        self.width = x1 - x0;
+        self.height = y1 - y0;
+        self
+    }
+
     /// The projection Jacobian at camera point `t`, and whether x / y were clamped.
     fn jacobian(&self, t: Vec3) -> (Mat3, bool, bool) {
         let rz = 1.0 / t.z;

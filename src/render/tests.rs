@@ -369,6 +369,41 @@ fn colour_only_backward_equals_backward_with_zero_aux_gradients() {
 }
 
 #[test]
+fn a_region_renders_and_differentiates_as_those_pixels_of_the_whole_image() {
+    let (gs, cam, bg) = dense_scene();
+    let opts = RenderOptions { background: bg, sh_degree: None };
+    let full = render(&gs, &cam, &opts);
+    let [x0, y0, x1, y1] = [9u32, 5, 50, 40];
+    let part = render_region(&gs, &cam, [x0, y0, x1, y1], &opts);
+    assert_eq!((part.width, part.height), (x1 - x0, y1 - y0));
+    let (w, rw) = (cam.width() as usize, (x1 - x0) as usize);
+    let crop = |img: &[f32], ch: usize| -> Vec<f32> {
+        (y0 as usize..y1 as usize)
+            .flat_map(|y| img[ch * (y * w + x0 as usize)..ch * (y * w + x1 as usize)].to_vec())
+            .collect()
+    };
+    assert!(max_abs_diff(&part.image.color, &crop(&full.image.color, 3)) < 1e-5);
+    assert!(max_abs_diff(&part.image.alpha, &crop(&full.image.alpha, 1)) < 1e-5);
+    // A loss on the region's pixels: its weights, and zero outside in the whole image.
+    let n = (cam.width() * cam.height()) as usize;
+    let weights = weights(n).c;
+    let mut outside_zero = vec![0.0; 3 * n];
+    for y in y0 as usize..y1 as usize {
+        let row = 3 * (y * w + x0 as usize)..3 * (y * w + x1 as usize);
+        outside_zero[row.clone()].copy_from_slice(&weights[row]);
+    }
+    let a = backward(&gs, &full, &outside_zero, None, None);
+    let b = backward(&gs, &part, &crop(&outside_zero, 3), None, None);
+    assert_eq!(rw * (y1 - y0) as usize * 3, crop(&outside_zero, 3).len());
+    assert!(a.params.means.iter().any(|v| *v != 0.0));
+    for g in ParamGroup::ALL {
+        let (ga, gb) = (a.params.group(g), b.params.group(g));
+        let scale = ga.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+        assert!(max_abs_diff(ga, gb) <= 1e-4 * scale, "{g:?}: {} against {scale}", max_abs_diff(ga, gb));
+    }
+}
+
+#[test]
 fn fast_exp_matches_f64_exp_on_nonpositive_arguments_with_every_kernel_set() {
     for k in Kernels::available() {
         let exp = |x: f32| dispatch!(k, |L; x: f32| -> f32 { raster::exp_nonpositive(L::splat(x)).to_array()[0] });

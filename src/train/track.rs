@@ -28,7 +28,8 @@ use super::static_stage::background_for;
 use super::views::TrainView;
 use crate::error::{Error, Result};
 use crate::motion::{extract_joint, kabsch, Rigid};
-use crate::render::{backward, render, RenderOptions};
+use crate::render::project::{project_one, ProjectionCamera};
+use crate::render::{backward, render, render_region, RenderOptions};
 use crate::splat::GaussianSet;
 
 mod end_state;
@@ -601,23 +602,33 @@ impl NodeTracker {
             // drawer was never found (docs/training.md).
             let deformed = self.deformed(&poses, &gains);
             let g = if articulated { self.revealed.with(deformed) } else { deformed };
-            let r = render(&g, &view.camera, &RenderOptions { background: bg, sh_degree: None });
-            let target = view.target(bg);
-            let (w, h) = (r.width as usize, r.height as usize);
-            let l = loss_and_grad(&r.image.color, &target, w, h, c.lambda_dssim);
-            let depth = view.depth_loss(&r.image.depth, c.track.depth_weight).map(|(_, grad)| grad);
-            let grads = backward(&g, &r, &l.grad, None, depth.as_deref());
-            let tracked = self.gaussians.len();
-            if articulated && !self.revealed.is_empty() {
-                self.revealed.step(&grads.params.rows(tracked..g.len()));
-            }
-            let mut at_t = self.photometric_node_gradient(&poses, &g, &grads.params);
-            if c.track.lr_gain > 0.0 {
-                let mut grad = self.spread_over_knots(&self.gain_gradient(&g, &grads.params), t, gain_free, j);
-                self.zero_frozen(&mut grad, 1);
-                let step = gain_optimizer.step(&grad, &[c.track.lr_gain]);
-                for (knot, s) in (gain_free..=j).zip(step.chunks_exact(n_nodes)) {
-                    self.gains[knot].iter_mut().zip(s).for_each(|(g, d)| *g += d);
+            let in_tail = i >= per_segment - tail;
+            // Rigid parts, and nothing else learnt from the frames (no gains, no
+            // revealed content, no depth): only the pixels the parts reach carry
+            // a gradient, and the whole view is rendered only where the loss is read.
+            let parts_only =
+                articulated && c.track.lr_gain == 0.0 && self.revealed.is_empty() && c.track.depth_weight == 0.0;
+            let whole = [0, 0, view.camera.width(), view.camera.height()];
+            let region = if parts_only && !in_tail { self.parts_region(&g, view) } else { Some(whole) };
+            let mut at_t = vec![0.0; 6 * n_nodes];
+            if let Some(region) = region {
+                let fit = region_step(&g, view, bg, region, c.lambda_dssim, 0.0, c.track.depth_weight);
+                let tracked = self.gaussians.len();
+                if articulated && !self.revealed.is_empty() {
+                    self.revealed.step(&fit.grads.params.rows(tracked..g.len()));
+                }
+                at_t = self.photometric_node_gradient(&poses, &g, &fit.grads.params);
+                if c.track.lr_gain > 0.0 {
+                    let mut grad = self.spread_over_knots(&self.gain_gradient(&g, &fit.grads.params), t, gain_free, j);
+                    self.zero_frozen(&mut grad, 1);
+                    let step = gain_optimizer.step(&grad, &[c.track.lr_gain]);
+                    for (knot, s) in (gain_free..=j).zip(step.chunks_exact(n_nodes)) {
+                        self.gains[knot].iter_mut().zip(s).for_each(|(g, d)| *g += d);
+                    }
+                }
+                if in_tail {
+                    loss += fit.loss / tail as f32;
+                    quality += psnr(&fit.render.image.color, &fit.target) / tail as f32;
                 }
             }
             self.add_arap(&poses, &mut at_t);
@@ -638,10 +649,6 @@ impl NodeTracker {
                 for (knot, s) in (free..=j).zip(step.chunks_exact(n6)) {
                     apply_step(&mut self.knots[knot], s);
                 }
-            }
-            if i >= per_segment - tail {
-                loss += l.loss / tail as f32;
-                quality += psnr(&r.image.color, &target) / tail as f32;
             }
         }
         tracing::debug!(
@@ -1113,28 +1120,123 @@ impl NodeTracker {
             let bg = background_for(view, c.seed, i, c.random_background, c.eval_background, STREAM_END_VIEWS);
             let poses = self.knots[last].clone();
             let g = self.revealed.with(self.deformed(&poses, &self.gains[last]));
-            let r = render(&g, &view.camera, &RenderOptions { background: bg, sh_degree: None });
-            let target = view.target(bg);
-            let l = loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, c.lambda_dssim);
-            let w = c.track.end_alpha_weight / r.image.alpha.len() as f32;
-            let alpha_grad: Option<Vec<f32>> = view
-                .alpha
-                .as_ref()
-                .filter(|_| w > 0.0)
-                .map(|a| r.image.alpha.iter().zip(a).map(|(x, y)| w * (x - y).signum()).collect());
-            let grads = backward(&g, &r, &l.grad, alpha_grad.as_deref(), None);
-            let at = self.photometric_node_gradient(&poses, &g, &grads.params);
-            let parts = self.articulation.as_mut().expect("parts");
-            let grad = parts.part_gradient(&self.node_centres, &at, &parts.poses[last]);
+            let (width, height) = (view.camera.width(), view.camera.height());
+            // Only the pixels the parts reach carry their gradient: the rest of the
+            // image is rendered only where the loss is read (the tail).
+            let in_tail = i >= iterations - tail;
+            let region = if in_tail { Some([0, 0, width, height]) } else { self.parts_region(&g, view) };
+            let grad = match region {
+                Some(region) => {
+                    let (grad, l) = self.end_pose_gradient(&poses, &g, view, bg, region);
+                    if in_tail {
+                        loss += l / tail as f32;
+                    }
+                    grad
+                }
+                // No part in view: no gradient (the optimiser still steps, as it would).
+                None => vec![0.0; 6 * n_parts],
+            };
             let step = optimizer.step(&grad, &[c.track.lr_rotation, c.track.lr_translation * self.object_size]);
+            let parts = self.articulation.as_mut().expect("parts");
             apply_step(&mut parts.poses[last], &step);
             parts.carry(&self.node_centres, &parts.poses[last], &mut self.knots[last]);
-            if i >= iterations - tail {
-                loss += l.loss / tail as f32;
-            }
         }
         tracing::info!(loss, views = end_views.len(), "stage II: the parts' end poses fitted on the end-state views");
         Some(loss)
+    }
+
+    /// dL/d(part end poses) of `view` rendered over `bg` with the Gaussians `g`
+    /// (deformed by `poses`), from the pixels `region` of the image (all the
+    /// pixels the parts reach, or the whole image), and the loss over those pixels
+    /// as a mean over the whole image.
+    fn end_pose_gradient(
+        &self,
+        poses: &[NodePose],
+        g: &GaussianSet,
+        view: &TrainView,
+        bg: Vec3,
+        region: [u32; 4],
+    ) -> (Vec<f32>, f32) {
+        let fit = region_step(g, view, bg, region, self.config.lambda_dssim, self.config.track.end_alpha_weight, 0.0);
+        let grads = fit.grads;
+        let at = self.photometric_node_gradient(poses, g, &grads.params);
+        let parts = self.articulation.as_ref().expect("parts");
+        let last = parts.poses.len() - 1;
+        (parts.part_gradient(&self.node_centres, &at, &parts.poses[last]), fit.loss)
+    }
+
+    /// The pixels of `view` the parts' Gaussians (in `g`, the deformed set) reach,
+    /// widened by `REGION_MARGIN` so the SSIM windows over them read the same
+    /// pixels as in the whole image; None when no part is in view.
+    fn parts_region(&self, g: &GaussianSet, view: &TrainView) -> Option<[u32; 4]> {
+        const REGION_MARGIN: u32 = 16;
+        let parts = self.articulation.as_ref()?;
+        footprint(g, &view.camera, REGION_MARGIN, |i| {
+            i < self.binding.len() && parts.node_part[self.binding[i] as usize] > 0
+        })
+    }
+
+    /// The mean robust photometric loss of end-state `views` (time 1) for each of
+    /// part `p`'s end poses `poses`, the rest as `parts` has it: what
+    /// `articulated_loss` gives each, from renders of only the pixels part `p`
+    /// reaches there; the other pixels are those of the view without the part,
+    /// rendered once.
+    fn end_losses_of_part_poses(
+        &self,
+        parts: &TrackedParts,
+        p: usize,
+        poses: &[NodePose],
+        views: &[&TrainView],
+    ) -> Vec<f32> {
+        let last = parts.poses.len() - 1;
+        let options = RenderOptions { background: Vec3::from(self.config.eval_background), sh_degree: None };
+        let cap = self.config.track.validation_residual_cap;
+        let in_part = |i: usize| i < self.binding.len() && parts.node_part[self.binding[i] as usize] == p + 1;
+        let at_pose = |pose: Option<NodePose>| {
+            let mut at = parts.poses[last].clone();
+            if let Some(pose) = pose {
+                at[p] = pose;
+            }
+            self.revealed.with(self.deformed(&parts.node_poses(&self.node_centres, &at), &self.gains[last]))
+        };
+        // Per view: its target and each pixel's residual without the part.
+        let without = at_pose(None);
+        let without = without.subset(&(0..without.len()).map(|i| !in_part(i)).collect::<Vec<_>>());
+        let bases: Vec<(Vec<f32>, ViewResiduals)> = views
+            .iter()
+            .map(|v| {
+                let target = v.target(options.background);
+                let r = render(&without, &v.camera, &options);
+                let base = ViewResiduals::new(pixel_residuals(&r.image.color, &target, cap));
+                (target, base)
+            })
+            .collect();
+        poses
+            .iter()
+            .map(|&pose| {
+                let g = at_pose(Some(pose));
+                let total: f64 = views
+                    .iter()
+                    .zip(&bases)
+                    .map(|(v, (target, base))| {
+                        let (w, h) = (v.camera.width(), v.camera.height());
+                        let sum = match footprint(&g, &v.camera, 0, in_part) {
+                            None => base.sum,
+                            Some(region) => {
+                                let r = render_region(&g, &v.camera, region, &options);
+                                base.sum_with(
+                                    w,
+                                    region,
+                                    &pixel_residuals(&r.image.color, &crop(target, w, 3, region), cap),
+                                )
+                            }
+                        };
+                        sum / f64::from(w * h)
+                    })
+                    .sum();
+                (total / views.len().max(1) as f64) as f32
+            })
+            .collect()
     }
 
     /// Global search of each part's end pose on `end_views` (`track.search_step`);
@@ -1213,11 +1315,8 @@ impl NodeTracker {
                     });
                 }
             }
-            for h in hypotheses {
-                let mut trial = parts.clone();
-                trial.poses[last][p] = h;
-                scored.push((self.articulated_loss(&trial, &trial.node_part, &check), h));
-            }
+            let losses = self.end_losses_of_part_poses(&parts, p, &hypotheses, &check);
+            scored.extend(losses.into_iter().zip(hypotheses));
         }
         scored.sort_by(|a, b| a.0.total_cmp(&b.0));
         if from_rest {
@@ -1289,7 +1388,7 @@ impl NodeTracker {
             return 0;
         }
         let mut node_part = parts.node_part.clone();
-        let mut current = self.articulated_loss(&parts, &node_part, &check);
+        let mut losses = self.pixel_losses(&parts, &node_part, &check);
         let mut moved = 0;
         for p in 1..=parts.centres.len() {
             let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
@@ -1310,13 +1409,14 @@ impl NodeTracker {
                     .map(|q| {
                         let mut trial = node_part.clone();
                         chunk.iter().for_each(|&k| trial[k] = q);
-                        let loss = self.articulated_loss(&parts, &trial, &check);
-                        (q, trial, loss)
+                        let relabelled = self.relabelled_losses(&parts, &losses, &trial);
+                        (q, trial, relabelled)
                     })
-                    .min_by(|a, b| a.2.total_cmp(&b.2));
+                    .min_by(|a, b| a.2.loss().total_cmp(&b.2.loss()));
                 // Strictly better only: a piece is too small for a tolerance on the
                 // whole frames' loss (1 % accepted nearly every piece, one after another).
-                if let Some((q, trial, loss)) = best {
+                if let Some((q, trial, relabelled)) = best {
+                    let (loss, current) = (relabelled.loss(), losses.loss());
                     if loss < current {
                         tracing::debug!(
                             part = p,
@@ -1326,8 +1426,8 @@ impl NodeTracker {
                             before = current,
                             "stage II: a piece of a part moved"
                         );
+                        losses = relabelled;
                         node_part = trial;
-                        current = loss;
                         moved += 1;
                     }
                 }
@@ -1371,31 +1471,75 @@ impl NodeTracker {
         c
     }
 
+    /// `articulated_loss` of `views` with the nodes labelled `node_part`, kept per pixel.
+    fn pixel_losses<'v>(&self, parts: &TrackedParts, node_part: &[usize], views: &[&'v TrainView]) -> PixelLosses<'v> {
+        let options = RenderOptions { background: Vec3::from(self.config.eval_background), sh_degree: None };
+        let cap = self.config.track.validation_residual_cap;
+        let targets: Vec<Vec<f32>> = views.iter().map(|v| v.target(options.background)).collect();
+        let maps = views
+            .iter()
+            .zip(&targets)
+            .map(|(v, target)| {
+                let r = render(&self.labelled_at(parts, node_part, v), &v.camera, &options);
+                ViewResiduals::new(pixel_residuals(&r.image.color, target, cap))
+            })
+            .collect();
+        PixelLosses {
+            views: views.to_vec(),
+            targets: std::sync::Arc::new(targets),
+            node_part: node_part.to_vec(),
+            maps,
+        }
+    }
+
+    /// `losses` for the nodes labelled `trial` instead, rendered only where the
+    /// Gaussians of the nodes whose label changed are, before or after.
+    fn relabelled_losses<'v>(
+        &self,
+        parts: &TrackedParts,
+        losses: &PixelLosses<'v>,
+        trial: &[usize],
+    ) -> PixelLosses<'v> {
+        let options = RenderOptions { background: Vec3::from(self.config.eval_background), sh_degree: None };
+        let cap = self.config.track.validation_residual_cap;
+        let changed: Vec<bool> = losses.node_part.iter().zip(trial).map(|(a, b)| a != b).collect();
+        let chosen = |i: usize| i < self.binding.len() && changed[self.binding[i] as usize];
+        let maps = losses
+            .views
+            .iter()
+            .zip(&losses.maps)
+            .zip(losses.targets.iter())
+            .map(|((v, map), target)| {
+                let before = self.labelled_at(parts, &losses.node_part, v);
+                let after = self.labelled_at(parts, trial, v);
+                let region = [footprint(&before, &v.camera, 0, chosen), footprint(&after, &v.camera, 0, chosen)]
+                    .into_iter()
+                    .flatten()
+                    .reduce(|a, b| [a[0].min(b[0]), a[1].min(b[1]), a[2].max(b[2]), a[3].max(b[3])]);
+                match region {
+                    None => map.clone(),
+                    Some(region) => {
+                        let r = render_region(&after, &v.camera, region, &options);
+                        let inside = pixel_residuals(&r.image.color, &crop(target, v.camera.width(), 3, region), cap);
+                        map.patched(v.camera.width(), region, &inside)
+                    }
+                }
+            })
+            .collect();
+        PixelLosses { views: losses.views.clone(), targets: losses.targets.clone(), node_part: trial.to_vec(), maps }
+    }
+
+    /// The Gaussians as `view` sees them (at its time) with the nodes labelled `node_part`.
+    fn labelled_at(&self, parts: &TrackedParts, node_part: &[usize], view: &TrainView) -> GaussianSet {
+        let t = view.time.unwrap_or(0.0);
+        let at = self.interpolated(&parts.poses, t, NodePose::lerp);
+        let assigned = TrackedParts { node_part: node_part.to_vec(), ..parts.clone() };
+        self.revealed.with(self.deformed(&assigned.node_poses(&self.node_centres, &at), &self.gains_at(t)))
+    }
+
     /// Mean robust photometric loss of `views` with the nodes assigned to parts by `node_part`.
     fn articulated_loss(&self, parts: &TrackedParts, node_part: &[usize], views: &[&TrainView]) -> f32 {
-        let assigned = TrackedParts { node_part: node_part.to_vec(), ..parts.clone() };
-        let bg = Vec3::from(self.config.eval_background);
-        let cap = self.config.track.validation_residual_cap;
-        let total: f32 = views
-            .iter()
-            .map(|v| {
-                let at = self.interpolated(&parts.poses, v.time.unwrap_or(0.0), NodePose::lerp);
-                let t = v.time.unwrap_or(0.0);
-                let poses = assigned.node_poses(&self.node_centres, &at);
-                let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
-                let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
-                let target = v.target(bg);
-                let sum: f32 = r
-                    .image
-                    .color
-                    .chunks_exact(3)
-                    .zip(target.chunks_exact(3))
-                    .map(|(x, y)| ((0..3).map(|c| (x[c] - y[c]).abs()).sum::<f32>() / 3.0).min(cap))
-                    .sum();
-                sum / (r.width * r.height) as f32
-            })
-            .sum();
-        total / views.len().max(1) as f32
+        self.pixel_losses(parts, node_part, views).loss()
     }
 
     /// Mean PSNR of `views` rendered at the tracked state nearest their times, over
@@ -1523,6 +1667,142 @@ fn distinct_poses(scored: &[(f32, NodePose)], n: usize, angle: f32, distance: f3
         }
     }
     taken
+}
+
+/// One training step's render, loss and backward pass on the pixels `region` of
+/// `view` over `bg` (the whole image, or all the pixels the changing Gaussians
+/// reach with room for the SSIM windows): the loss (L1 + `lambda_dssim` D-SSIM, an
+/// L1 term on coverage at `alpha_weight` where the view has alpha, the depth term
+/// at `depth_weight`, which needs the whole image) as a mean over the whole image.
+struct RegionStep {
+    render: crate::render::Render,
+    target: Vec<f32>,
+    loss: f32,
+    grads: crate::render::Gradients,
+}
+
+fn region_step(
+    g: &GaussianSet,
+    view: &TrainView,
+    bg: Vec3,
+    region: [u32; 4],
+    lambda_dssim: f32,
+    alpha_weight: f32,
+    depth_weight: f32,
+) -> RegionStep {
+    let (width, height) = (view.camera.width(), view.camera.height());
+    let render = render_region(g, &view.camera, region, &RenderOptions { background: bg, sh_degree: None });
+    let target = crop(&view.target(bg), width, 3, region);
+    let (w, h) = (render.width as usize, render.height as usize);
+    let mut l = loss_and_grad(&render.image.color, &target, w, h, lambda_dssim);
+    // A mean over the whole image, not over the region.
+    let share = (w * h) as f32 / (width * height) as f32;
+    l.grad.iter_mut().for_each(|v| *v *= share);
+    let aw = alpha_weight / (width * height) as f32;
+    let alpha_grad: Option<Vec<f32>> = view.alpha.as_ref().filter(|_| aw > 0.0).map(|a| {
+        let a = crop(a, width, 1, region);
+        render.image.alpha.iter().zip(&a).map(|(x, y)| aw * (x - y).signum()).collect()
+    });
+    let depth = (depth_weight > 0.0)
+        .then(|| {
+            assert_eq!(region, [0, 0, width, height], "the depth term needs the whole image");
+            view.depth_loss(&render.image.depth, depth_weight).map(|(_, grad)| grad)
+        })
+        .flatten();
+    let grads = backward(g, &render, &l.grad, alpha_grad.as_deref(), depth.as_deref());
+    RegionStep { render, target, loss: l.loss * share, grads }
+}
+
+/// Per pixel of some views, the robust residual (`articulated_loss`'s) of one
+/// labelling of the nodes.
+struct PixelLosses<'v> {
+    views: Vec<&'v TrainView>,
+    /// Each view's target over the evaluation background.
+    targets: std::sync::Arc<Vec<Vec<f32>>>,
+    node_part: Vec<usize>,
+    maps: Vec<ViewResiduals>,
+}
+
+impl PixelLosses<'_> {
+    /// The mean over the views of the mean residual per pixel: `articulated_loss`.
+    fn loss(&self) -> f32 {
+        let total: f64 = self.maps.iter().map(|m| m.sum / m.residual.len().max(1) as f64).sum();
+        (total / self.maps.len().max(1) as f64) as f32
+    }
+}
+
+/// One view's per-pixel residual and its sum.
+#[derive(Clone)]
+struct ViewResiduals {
+    residual: Vec<f32>,
+    sum: f64,
+}
+
+impl ViewResiduals {
+    fn new(residual: Vec<f32>) -> Self {
+        let sum = residual.iter().map(|&e| f64::from(e)).sum();
+        Self { residual, sum }
+    }
+
+    /// The sum with the pixels `region` of an image `width` wide replaced by `inside`.
+    fn sum_with(&self, width: u32, region: [u32; 4], inside: &[f32]) -> f64 {
+        let replaced: f64 = crop(&self.residual, width, 1, region).into_iter().map(f64::from).sum();
+        self.sum - replaced + inside.iter().map(|&e| f64::from(e)).sum::<f64>()
+    }
+
+    /// The same with the pixels `region` of an image `width` wide replaced by `inside`.
+    fn patched(&self, width: u32, region: [u32; 4], inside: &[f32]) -> Self {
+        let mut residual = self.residual.clone();
+        let [x0, y0, x1, _] = region.map(|v| v as usize);
+        for (y, row) in (y0..).zip(inside.chunks_exact(x1 - x0)) {
+            let start = y * width as usize + x0;
+            residual[start..start + row.len()].copy_from_slice(row);
+        }
+        Self::new(residual)
+    }
+}
+
+/// The robust per-pixel residual: mean absolute error over the channels, capped at `cap`.
+fn pixel_residuals(rendered: &[f32], target: &[f32], cap: f32) -> Vec<f32> {
+    rendered
+        .chunks_exact(3)
+        .zip(target.chunks_exact(3))
+        .map(|(x, y)| ((0..3).map(|c| (x[c] - y[c]).abs()).sum::<f32>() / 3.0).min(cap))
+        .collect()
+}
+
+/// The pixels [x0, y0, x1, y1) of `camera`'s image that the Gaussians of `g`
+/// for which `chosen(i)` holds reach, widened by `margin` on every side (inside
+/// the image); None when none of them is in view.
+fn footprint(
+    g: &GaussianSet,
+    camera: &crate::camera::Camera,
+    margin: u32,
+    chosen: impl Fn(usize) -> bool + Sync,
+) -> Option<[u32; 4]> {
+    let projection = ProjectionCamera::new(camera);
+    let (width, height) = (camera.width(), camera.height());
+    (0..g.len())
+        .into_par_iter()
+        .filter(|&i| chosen(i))
+        .filter_map(|i| project_one(g, i, &projection, 0).map(|p| p.bbox))
+        .reduce_with(|a, b| [a[0].min(b[0]), a[1].min(b[1]), a[2].max(b[2]), a[3].max(b[3])])
+        .map(|b| {
+            [
+                b[0].saturating_sub(margin),
+                b[1].saturating_sub(margin),
+                (b[2] + 1 + margin).min(width),
+                (b[3] + 1 + margin).min(height),
+            ]
+        })
+}
+
+/// The pixels `region` = [x0, y0, x1, y1) of a row-major image `width` pixels
+/// wide with `channels` values per pixel.
+fn crop(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> Vec<f32> {
+    let [x0, y0, x1, y1] = region.map(|v| v as usize);
+    let w = width as usize;
+    (y0..y1).flat_map(|y| &image[channels * (y * w + x0)..channels * (y * w + x1)]).copied().collect()
 }
 
 /// At most `n` of `items`, evenly spread over them (the first and the last included).
@@ -1766,6 +2046,112 @@ mod tests {
         // From the pose found, no grid hypothesis explains the end state clearly better.
         assert_eq!(tracker.search_end_poses(&views), 0, "a second search keeps the pose it found");
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after a second search: {}", error(&tracker));
+    }
+
+    /// A textured base over the whole view and a small part (centre (0.6, 0.4,
+    /// -0.3)) in one corner of it, at an end pose away from rest, and an end-state
+    /// view of everything at rest (alpha included).
+    fn corner_part_scene() -> (NodeTracker, TrainView) {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut gs = GaussianSet::new(0);
+        let centre = Vec3::new(0.6, 0.4, -0.3);
+        for k in 0..420 {
+            let (at, spread) = if k < 360 { (Vec3::ZERO, 1.0) } else { (centre, 0.12) };
+            let mean = at + Vec3::new(rng.random_range(-spread..spread), rng.random_range(-spread..spread), 0.0);
+            let dc = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+            gs.push(mean, Vec3::new(-3.0, -3.0, -5.0), [1.0, 0.0, 0.0, 0.0], logit(0.8), dc, &[]);
+        }
+        let mut config = DynamicConfig::cpu();
+        config.track.nodes = 48;
+        config.track.gaussians_per_node = 1;
+        let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
+        let n = tracker.node_centres.len();
+        let node_part: Vec<usize> =
+            tracker.node_centres.iter().map(|c| usize::from(c.distance(centre) < 0.3)).collect();
+        assert!(node_part.iter().any(|&l| l == 1) && node_part.iter().any(|&l| l == 0));
+        let pose = NodePose { rotation: Quat::from_rotation_z(0.1), translation: Vec3::new(0.03, -0.02, 0.0) };
+        let parts =
+            TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY], vec![pose]] };
+        tracker.knots = vec![vec![NodePose::IDENTITY; n], parts.node_poses(&tracker.node_centres, &[pose])];
+        tracker.gains = vec![vec![0.0; n]; 2];
+        tracker.articulation = Some(parts);
+        let k = Intrinsics { width: 96, height: 80, fx: 70.0, fy: 70.0, cx: 47.0, cy: 41.0 };
+        let camera = Camera::look_at(k, Vec3::new(0.1, 0.0, -3.0), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0));
+        let rest = render(&tracker.gaussians, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
+        let view = TrainView {
+            name: String::new(),
+            camera,
+            premultiplied: rest.image.color,
+            alpha: Some(rest.image.alpha),
+            time: Some(1.0),
+            depth: None,
+        };
+        (tracker, view)
+    }
+
+    #[test]
+    fn the_end_pose_gradient_from_the_parts_region_is_the_whole_images() {
+        let (mut tracker, view) = corner_part_scene();
+        tracker.config.track.end_alpha_weight = 0.3;
+        assert!(tracker.config.lambda_dssim > 0.0, "the SSIM term's reach is part of what is tested");
+        let (w, h) = (view.camera.width(), view.camera.height());
+        let poses = tracker.knots[1].clone();
+        let g = tracker.deformed(&poses, &tracker.gains[1]);
+        let region = tracker.parts_region(&g, &view).expect("the part is in view");
+        assert!((region[2] - region[0]) * (region[3] - region[1]) < w * h / 2, "region {region:?} of {w}x{h}");
+        let bg = Vec3::new(0.2, 0.5, 0.7);
+        let (from_region, _) = tracker.end_pose_gradient(&poses, &g, &view, bg, region);
+        let (from_image, _) = tracker.end_pose_gradient(&poses, &g, &view, bg, [0, 0, w, h]);
+        let scale = from_image.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0);
+        for (a, b) in from_region.iter().zip(&from_image) {
+            assert!((a - b).abs() <= 1e-4 * scale, "{from_region:?} against {from_image:?}");
+        }
+    }
+
+    #[test]
+    fn end_losses_from_the_parts_pixels_are_the_whole_images() {
+        let (tracker, view) = corner_part_scene();
+        let parts = tracker.articulation.clone().expect("a part");
+        let c = parts.centres[0];
+        // Rest, the end pose, a turn that takes the part half out of view, one that takes it all out.
+        let poses = [
+            NodePose::IDENTITY,
+            parts.poses[1][0],
+            NodePose { rotation: Quat::from_rotation_y(0.5), translation: Vec3::new(0.3, 0.1, 0.0) },
+            NodePose { rotation: Quat::IDENTITY, translation: Vec3::new(5.0, 0.0, 0.0) - c },
+        ];
+        let fast = tracker.end_losses_of_part_poses(&parts, 0, &poses, &[&view]);
+        for (pose, fast) in poses.iter().zip(fast) {
+            let mut trial = parts.clone();
+            trial.poses[1][0] = *pose;
+            let whole = tracker.articulated_loss(&trial, &trial.node_part, &[&view]);
+            assert!(whole > 0.0 || *pose == NodePose::IDENTITY);
+            assert!((fast - whole).abs() <= 1e-5 * whole.max(1e-3), "{pose:?}: {fast} against {whole}");
+        }
+    }
+
+    #[test]
+    fn losses_of_a_relabelling_from_the_changed_pixels_are_the_whole_images() {
+        let (tracker, view) = corner_part_scene();
+        let parts = tracker.articulation.clone().expect("a part");
+        let mut early = view.clone();
+        early.time = Some(0.5);
+        let views = [&view, &early];
+        let losses = tracker.pixel_losses(&parts, &parts.node_part, &views);
+        // Half the part's nodes given to the base, then all of it.
+        let part: Vec<usize> = (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == 1).collect();
+        let mut half = parts.node_part.clone();
+        part.iter().take(part.len() / 2).for_each(|&k| half[k] = 0);
+        let none = vec![0; parts.node_part.len()];
+        let half_losses = tracker.relabelled_losses(&parts, &losses, &half);
+        for (trial, fast) in [(&half, &half_losses), (&none, &tracker.relabelled_losses(&parts, &half_losses, &none))] {
+            let whole = tracker.articulated_loss(&parts, trial, &views);
+            // Half the part at its end pose shows; all of it at rest matches the view.
+            assert!(whole > 1e-4 || trial == &none, "{whole}");
+            // Relative, and absolute for the renderer's float rounding where the loss is near 0.
+            assert!((fast.loss() - whole).abs() <= 1e-5 * whole + 1e-7, "{} against {whole}", fast.loss());
+        }
     }
 
     /// The end-state refit with the coverage term at `alpha_weight` (views with alpha).
