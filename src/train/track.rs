@@ -603,33 +603,24 @@ impl NodeTracker {
             let deformed = self.deformed(&poses, &gains);
             let g = if articulated { self.revealed.with(deformed) } else { deformed };
             let in_tail = i >= per_segment - tail;
-            // Rigid parts, and nothing else learnt from the frames (no gains, no
-            // revealed content, no depth): only the pixels the parts reach carry
-            // a gradient, and the whole view is rendered only where the loss is read.
-            let parts_only =
-                articulated && c.track.lr_gain == 0.0 && self.revealed.is_empty() && c.track.depth_weight == 0.0;
             let whole = [0, 0, view.camera.width(), view.camera.height()];
-            let region = if parts_only && !in_tail { self.parts_region(&g, view) } else { Some(whole) };
-            let mut at_t = vec![0.0; 6 * n_nodes];
-            if let Some(region) = region {
-                let fit = region_step(&g, view, bg, region, c.lambda_dssim, 0.0, c.track.depth_weight);
-                let tracked = self.gaussians.len();
-                if articulated && !self.revealed.is_empty() {
-                    self.revealed.step(&fit.grads.params.rows(tracked..g.len()));
+            let fit = region_step(&g, view, bg, whole, c.lambda_dssim, 0.0, c.track.depth_weight);
+            let tracked = self.gaussians.len();
+            if articulated && !self.revealed.is_empty() {
+                self.revealed.step(&fit.grads.params.rows(tracked..g.len()));
+            }
+            let mut at_t = self.photometric_node_gradient(&poses, &g, &fit.grads.params);
+            if c.track.lr_gain > 0.0 {
+                let mut grad = self.spread_over_knots(&self.gain_gradient(&g, &fit.grads.params), t, gain_free, j);
+                self.zero_frozen(&mut grad, 1);
+                let step = gain_optimizer.step(&grad, &[c.track.lr_gain]);
+                for (knot, s) in (gain_free..=j).zip(step.chunks_exact(n_nodes)) {
+                    self.gains[knot].iter_mut().zip(s).for_each(|(g, d)| *g += d);
                 }
-                at_t = self.photometric_node_gradient(&poses, &g, &fit.grads.params);
-                if c.track.lr_gain > 0.0 {
-                    let mut grad = self.spread_over_knots(&self.gain_gradient(&g, &fit.grads.params), t, gain_free, j);
-                    self.zero_frozen(&mut grad, 1);
-                    let step = gain_optimizer.step(&grad, &[c.track.lr_gain]);
-                    for (knot, s) in (gain_free..=j).zip(step.chunks_exact(n_nodes)) {
-                        self.gains[knot].iter_mut().zip(s).for_each(|(g, d)| *g += d);
-                    }
-                }
-                if in_tail {
-                    loss += fit.loss / tail as f32;
-                    quality += psnr(&fit.render.image.color, &fit.target) / tail as f32;
-                }
+            }
+            if in_tail {
+                loss += fit.loss / tail as f32;
+                quality += psnr(&fit.render.image.color, &fit.target) / tail as f32;
             }
             self.add_arap(&poses, &mut at_t);
             if let Some(parts) = &self.articulation {
@@ -1388,7 +1379,7 @@ impl NodeTracker {
             return 0;
         }
         let mut node_part = parts.node_part.clone();
-        let mut losses = self.pixel_losses(&parts, &node_part, &check);
+        let mut current = self.articulated_loss(&parts, &node_part, &check);
         let mut moved = 0;
         for p in 1..=parts.centres.len() {
             let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
@@ -1409,14 +1400,13 @@ impl NodeTracker {
                     .map(|q| {
                         let mut trial = node_part.clone();
                         chunk.iter().for_each(|&k| trial[k] = q);
-                        let relabelled = self.relabelled_losses(&parts, &losses, &trial);
-                        (q, trial, relabelled)
+                        let loss = self.articulated_loss(&parts, &trial, &check);
+                        (q, trial, loss)
                     })
-                    .min_by(|a, b| a.2.loss().total_cmp(&b.2.loss()));
+                    .min_by(|a, b| a.2.total_cmp(&b.2));
                 // Strictly better only: a piece is too small for a tolerance on the
                 // whole frames' loss (1 % accepted nearly every piece, one after another).
-                if let Some((q, trial, relabelled)) = best {
-                    let (loss, current) = (relabelled.loss(), losses.loss());
+                if let Some((q, trial, loss)) = best {
                     if loss < current {
                         tracing::debug!(
                             part = p,
@@ -1426,8 +1416,8 @@ impl NodeTracker {
                             before = current,
                             "stage II: a piece of a part moved"
                         );
-                        losses = relabelled;
                         node_part = trial;
+                        current = loss;
                         moved += 1;
                     }
                 }
@@ -1471,75 +1461,24 @@ impl NodeTracker {
         c
     }
 
-    /// `articulated_loss` of `views` with the nodes labelled `node_part`, kept per pixel.
-    fn pixel_losses<'v>(&self, parts: &TrackedParts, node_part: &[usize], views: &[&'v TrainView]) -> PixelLosses<'v> {
-        let options = RenderOptions { background: Vec3::from(self.config.eval_background), sh_degree: None };
-        let cap = self.config.track.validation_residual_cap;
-        let targets: Vec<Vec<f32>> = views.iter().map(|v| v.target(options.background)).collect();
-        let maps = views
-            .iter()
-            .zip(&targets)
-            .map(|(v, target)| {
-                let r = render(&self.labelled_at(parts, node_part, v), &v.camera, &options);
-                ViewResiduals::new(pixel_residuals(&r.image.color, target, cap))
-            })
-            .collect();
-        PixelLosses {
-            views: views.to_vec(),
-            targets: std::sync::Arc::new(targets),
-            node_part: node_part.to_vec(),
-            maps,
-        }
-    }
-
-    /// `losses` for the nodes labelled `trial` instead, rendered only where the
-    /// Gaussians of the nodes whose label changed are, before or after.
-    fn relabelled_losses<'v>(
-        &self,
-        parts: &TrackedParts,
-        losses: &PixelLosses<'v>,
-        trial: &[usize],
-    ) -> PixelLosses<'v> {
-        let options = RenderOptions { background: Vec3::from(self.config.eval_background), sh_degree: None };
-        let cap = self.config.track.validation_residual_cap;
-        let changed: Vec<bool> = losses.node_part.iter().zip(trial).map(|(a, b)| a != b).collect();
-        let chosen = |i: usize| i < self.binding.len() && changed[self.binding[i] as usize];
-        let maps = losses
-            .views
-            .iter()
-            .zip(&losses.maps)
-            .zip(losses.targets.iter())
-            .map(|((v, map), target)| {
-                let before = self.labelled_at(parts, &losses.node_part, v);
-                let after = self.labelled_at(parts, trial, v);
-                let region = [footprint(&before, &v.camera, 0, chosen), footprint(&after, &v.camera, 0, chosen)]
-                    .into_iter()
-                    .flatten()
-                    .reduce(|a, b| [a[0].min(b[0]), a[1].min(b[1]), a[2].max(b[2]), a[3].max(b[3])]);
-                match region {
-                    None => map.clone(),
-                    Some(region) => {
-                        let r = render_region(&after, &v.camera, region, &options);
-                        let inside = pixel_residuals(&r.image.color, &crop(target, v.camera.width(), 3, region), cap);
-                        map.patched(v.camera.width(), region, &inside)
-                    }
-                }
-            })
-            .collect();
-        PixelLosses { views: losses.views.clone(), targets: losses.targets.clone(), node_part: trial.to_vec(), maps }
-    }
-
-    /// The Gaussians as `view` sees them (at its time) with the nodes labelled `node_part`.
-    fn labelled_at(&self, parts: &TrackedParts, node_part: &[usize], view: &TrainView) -> GaussianSet {
-        let t = view.time.unwrap_or(0.0);
-        let at = self.interpolated(&parts.poses, t, NodePose::lerp);
-        let assigned = TrackedParts { node_part: node_part.to_vec(), ..parts.clone() };
-        self.revealed.with(self.deformed(&assigned.node_poses(&self.node_centres, &at), &self.gains_at(t)))
-    }
-
     /// Mean robust photometric loss of `views` with the nodes assigned to parts by `node_part`.
     fn articulated_loss(&self, parts: &TrackedParts, node_part: &[usize], views: &[&TrainView]) -> f32 {
-        self.pixel_losses(parts, node_part, views).loss()
+        let assigned = TrackedParts { node_part: node_part.to_vec(), ..parts.clone() };
+        let bg = Vec3::from(self.config.eval_background);
+        let cap = self.config.track.validation_residual_cap;
+        let total: f32 = views
+            .iter()
+            .map(|v| {
+                let at = self.interpolated(&parts.poses, v.time.unwrap_or(0.0), NodePose::lerp);
+                let t = v.time.unwrap_or(0.0);
+                let poses = assigned.node_poses(&self.node_centres, &at);
+                let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
+                let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+                let sum: f32 = pixel_residuals(&r.image.color, &v.target(bg), cap).into_iter().sum();
+                sum / (r.width * r.height) as f32
+            })
+            .sum();
+        total / views.len().max(1) as f32
     }
 
     /// Mean PSNR of `views` rendered at the tracked state nearest their times, over
@@ -1713,26 +1652,7 @@ fn region_step(
     RegionStep { render, target, loss: l.loss * share, grads }
 }
 
-/// Per pixel of some views, the robust residual (`articulated_loss`'s) of one
-/// labelling of the nodes.
-struct PixelLosses<'v> {
-    views: Vec<&'v TrainView>,
-    /// Each view's target over the evaluation background.
-    targets: std::sync::Arc<Vec<Vec<f32>>>,
-    node_part: Vec<usize>,
-    maps: Vec<ViewResiduals>,
-}
-
-impl PixelLosses<'_> {
-    /// The mean over the views of the mean residual per pixel: `articulated_loss`.
-    fn loss(&self) -> f32 {
-        let total: f64 = self.maps.iter().map(|m| m.sum / m.residual.len().max(1) as f64).sum();
-        (total / self.maps.len().max(1) as f64) as f32
-    }
-}
-
 /// One view's per-pixel residual and its sum.
-#[derive(Clone)]
 struct ViewResiduals {
     residual: Vec<f32>,
     sum: f64,
@@ -1748,17 +1668,6 @@ impl ViewResiduals {
     fn sum_with(&self, width: u32, region: [u32; 4], inside: &[f32]) -> f64 {
         let replaced: f64 = crop(&self.residual, width, 1, region).into_iter().map(f64::from).sum();
         self.sum - replaced + inside.iter().map(|&e| f64::from(e)).sum::<f64>()
-    }
-
-    /// The same with the pixels `region` of an image `width` wide replaced by `inside`.
-    fn patched(&self, width: u32, region: [u32; 4], inside: &[f32]) -> Self {
-        let mut residual = self.residual.clone();
-        let [x0, y0, x1, _] = region.map(|v| v as usize);
-        for (y, row) in (y0..).zip(inside.chunks_exact(x1 - x0)) {
-            let start = y * width as usize + x0;
-            residual[start..start + row.len()].copy_from_slice(row);
-        }
-        Self::new(residual)
     }
 }
 
@@ -2068,7 +1977,7 @@ mod tests {
         let n = tracker.node_centres.len();
         let node_part: Vec<usize> =
             tracker.node_centres.iter().map(|c| usize::from(c.distance(centre) < 0.3)).collect();
-        assert!(node_part.iter().any(|&l| l == 1) && node_part.iter().any(|&l| l == 0));
+        assert!(node_part.contains(&1) && node_part.contains(&0));
         let pose = NodePose { rotation: Quat::from_rotation_z(0.1), translation: Vec3::new(0.03, -0.02, 0.0) };
         let parts =
             TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY], vec![pose]] };
@@ -2128,29 +2037,6 @@ mod tests {
             let whole = tracker.articulated_loss(&trial, &trial.node_part, &[&view]);
             assert!(whole > 0.0 || *pose == NodePose::IDENTITY);
             assert!((fast - whole).abs() <= 1e-5 * whole.max(1e-3), "{pose:?}: {fast} against {whole}");
-        }
-    }
-
-    #[test]
-    fn losses_of_a_relabelling_from_the_changed_pixels_are_the_whole_images() {
-        let (tracker, view) = corner_part_scene();
-        let parts = tracker.articulation.clone().expect("a part");
-        let mut early = view.clone();
-        early.time = Some(0.5);
-        let views = [&view, &early];
-        let losses = tracker.pixel_losses(&parts, &parts.node_part, &views);
-        // Half the part's nodes given to the base, then all of it.
-        let part: Vec<usize> = (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == 1).collect();
-        let mut half = parts.node_part.clone();
-        part.iter().take(part.len() / 2).for_each(|&k| half[k] = 0);
-        let none = vec![0; parts.node_part.len()];
-        let half_losses = tracker.relabelled_losses(&parts, &losses, &half);
-        for (trial, fast) in [(&half, &half_losses), (&none, &tracker.relabelled_losses(&parts, &half_losses, &none))] {
-            let whole = tracker.articulated_loss(&parts, trial, &views);
-            // Half the part at its end pose shows; all of it at rest matches the view.
-            assert!(whole > 1e-4 || trial == &none, "{whole}");
-            // Relative, and absolute for the renderer's float rounding where the loss is near 0.
-            assert!((fast.loss() - whole).abs() <= 1e-5 * whole + 1e-7, "{} against {whole}", fast.loss());
         }
     }
 
