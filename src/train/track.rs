@@ -1149,8 +1149,7 @@ impl NodeTracker {
         region: [u32; 4],
     ) -> (Vec<f32>, f32) {
         let fit = region_step(g, view, bg, region, self.config.lambda_dssim, self.config.track.end_alpha_weight, 0.0);
-        let grads = fit.grads;
-        let at = self.photometric_node_gradient(poses, g, &grads.params);
+        let at = self.photometric_node_gradient(poses, g, &fit.grads.params);
         let parts = self.articulation.as_ref().expect("parts");
         let last = parts.poses.len() - 1;
         (parts.part_gradient(&self.node_centres, &at, &parts.poses[last]), fit.loss)
@@ -1631,7 +1630,9 @@ fn region_step(
 ) -> RegionStep {
     let (width, height) = (view.camera.width(), view.camera.height());
     let render = render_region(g, &view.camera, region, &RenderOptions { background: bg, sh_degree: None });
-    let target = crop(&view.target(bg), width, 3, region);
+    let target = view.target(bg);
+    // The whole view (every tracking step) needs no copy.
+    let target = if region == [0, 0, width, height] { target } else { crop(&target, width, 3, region) };
     let (w, h) = (render.width as usize, render.height as usize);
     let mut l = loss_and_grad(&render.image.color, &target, w, h, lambda_dssim);
     // A mean over the whole image, not over the region.
@@ -1666,7 +1667,7 @@ impl ViewResiduals {
 
     /// The sum with the pixels `region` of an image `width` wide replaced by `inside`.
     fn sum_with(&self, width: u32, region: [u32; 4], inside: &[f32]) -> f64 {
-        let replaced: f64 = crop(&self.residual, width, 1, region).into_iter().map(f64::from).sum();
+        let replaced: f64 = region_rows(&self.residual, width, 1, region).flatten().map(|&e| f64::from(e)).sum();
         self.sum - replaced + inside.iter().map(|&e| f64::from(e)).sum::<f64>()
     }
 }
@@ -1709,9 +1710,14 @@ fn footprint(
 /// The pixels `region` = [x0, y0, x1, y1) of a row-major image `width` pixels
 /// wide with `channels` values per pixel.
 fn crop(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> Vec<f32> {
+    region_rows(image, width, channels, region).flatten().copied().collect()
+}
+
+/// The rows of `region` in such an image, top to bottom.
+fn region_rows(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> impl Iterator<Item = &[f32]> {
     let [x0, y0, x1, y1] = region.map(|v| v as usize);
     let w = width as usize;
-    (y0..y1).flat_map(|y| &image[channels * (y * w + x0)..channels * (y * w + x1)]).copied().collect()
+    (y0..y1).map(move |y| &image[channels * (y * w + x0)..channels * (y * w + x1)])
 }
 
 /// At most `n` of `items`, evenly spread over them (the first and the last included).
