@@ -23,13 +23,11 @@ pub struct ChamferDistance {
 fn directed(from: &[Vec3], to: &[Vec3]) -> (f64, f64) {
     let coords: Vec<[f32; 3]> = to.iter().map(|p| p.to_array()).collect();
     let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&coords);
-    let (sum, sum_sq) = from
-        .par_iter()
-        .map(|p| {
-            let d2 = f64::from(tree.nearest_one::<SquaredEuclidean>(&p.to_array()).distance);
-            (d2.sqrt(), d2)
-        })
-        .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+    // Distances in parallel, summed in order: a parallel reduction's grouping
+    // depends on the thread schedule, and the metric must repeat to the last bit.
+    let d2: Vec<f64> =
+        from.par_iter().map(|p| f64::from(tree.nearest_one::<SquaredEuclidean>(&p.to_array()).distance)).collect();
+    let (sum, sum_sq) = d2.iter().fold((0.0, 0.0), |(s, s2), &d| (s + d.sqrt(), s2 + d));
     (sum / from.len() as f64, sum_sq / from.len() as f64)
 }
 

@@ -1296,13 +1296,22 @@ impl NodeTracker {
                     hypotheses.push(NodePose { rotation: r, translation: r * (c - pivot) + pivot - c });
                 }
             }
-            let length = (a1 - a0).max(u1 - u0).max(v1 - v0);
-            for k in 1..=8 {
+            // Slides up to the object's extent along the axis (a slider on a
+            // knife's handle moves farther than its own size), in steps of at most
+            // half the part's own length along it, so a small part's grid pose
+            // overlaps where it truly went.
+            let span = {
+                let proj = means.iter().map(|m| m.dot(*a));
+                let (lo, hi) = proj.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x), hi.max(x)));
+                hi - lo
+            };
+            let length = (a1 - a0).max(u1 - u0).max(v1 - v0).max(span);
+            let slide_step = (0.5 * (a1 - a0)).clamp(length / 24.0, length / 8.0);
+            let slides = (length / slide_step).round() as i32;
+            for k in 1..=slides {
                 for sign in [-1.0f32, 1.0] {
-                    hypotheses.push(NodePose {
-                        rotation: Quat::IDENTITY,
-                        translation: *a * (sign * length * k as f32 / 8.0),
-                    });
+                    hypotheses
+                        .push(NodePose { rotation: Quat::IDENTITY, translation: *a * (sign * slide_step * k as f32) });
                 }
             }
             let losses = self.end_losses_of_part_poses(&parts, p, &hypotheses, &check);
@@ -1961,6 +1970,70 @@ mod tests {
         // From the pose found, no grid hypothesis explains the end state clearly better.
         assert_eq!(tracker.search_end_poses(&views), 0, "a second search keeps the pose it found");
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after a second search: {}", error(&tracker));
+    }
+
+    #[test]
+    fn a_global_search_finds_a_small_slider_moved_far_beyond_its_size() {
+        // A textured bar in y = 0 and a red slider on it, 0.06 long, that truly
+        // ends 0.5 along x (a knife's slider pushed to the tip); the tracked end
+        // pose left it at rest.
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let mut gs = GaussianSet::new(0);
+        for _ in 0..600 {
+            let (x, z) = (rng.random_range(-0.5..0.5f32), rng.random_range(-0.12..0.12f32));
+            let dc = [rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5)];
+            gs.push(Vec3::new(x, 0.0, z), Vec3::new(-3.5, -5.0, -3.5), [1.0, 0.0, 0.0, 0.0], logit(0.9), dc, &[]);
+        }
+        for _ in 0..80 {
+            let (x, z) = (rng.random_range(-0.33..-0.27f32), rng.random_range(-0.03..0.03f32));
+            gs.push(
+                Vec3::new(x, 0.03, z),
+                Vec3::new(-4.5, -5.0, -4.5),
+                [1.0, 0.0, 0.0, 0.0],
+                logit(0.9),
+                [2.0, -1.5, -1.5],
+                &[],
+            );
+        }
+        let mut config = DynamicConfig::cpu();
+        config.track.nodes = gs.len();
+        config.track.gaussians_per_node = 1;
+        config.track.end_iterations = 100;
+        config.track.search_step = std::f32::consts::PI / 12.0;
+        config.eval_background = [0.0; 3];
+        let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
+        let node_part: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.y > 0.015)).collect();
+        let members = tracker.gaussians_labelled(&node_part, 1);
+        assert!(members.len() > 40, "the slider's Gaussians: {}", members.len());
+        let centre = members.iter().map(|&i| tracker.gaussians.mean(i)).sum::<Vec3>() / members.len() as f32;
+        let truth = NodePose { rotation: Quat::IDENTITY, translation: Vec3::new(0.5, 0.0, 0.0) };
+        let parts = TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]; 2] };
+        let n = tracker.node_centres.len();
+        tracker.knots = vec![vec![NodePose::IDENTITY; n]; 2];
+        tracker.gains = vec![vec![0.0; n]; 2];
+        let true_set = tracker.deformed(&parts.node_poses(&tracker.node_centres, &[truth]), &vec![0.0; n]);
+        let k = Intrinsics { width: 48, height: 48, fx: 45.0, fy: 45.0, cx: 24.0, cy: 24.0 };
+        let views: Vec<TrainView> = (0..6)
+            .map(|i| {
+                let a = i as f32 * std::f32::consts::TAU / 6.0 + 0.3;
+                let eye = Vec3::new(1.6 * a.cos(), 1.4, 1.6 * a.sin());
+                let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Y);
+                let r = render(&true_set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
+                TrainView {
+                    name: String::new(),
+                    camera,
+                    premultiplied: r.image.color,
+                    alpha: Some(r.image.alpha),
+                    time: Some(1.0),
+                    depth: None,
+                }
+            })
+            .collect();
+        tracker.articulation = Some(parts);
+        assert_eq!(tracker.search_end_poses(&views), 1, "the searched pose replaces the tracked one");
+        let now = tracker.deformed(&tracker.knots[1], &vec![0.0; n]);
+        let error = members.iter().map(|&i| now.mean(i).distance(true_set.mean(i))).fold(0.0f32, f32::max);
+        assert!(error < 0.02, "largest slider Gaussian offset after the search: {error}");
     }
 
     /// A textured base over the whole view and a small part (centre (0.6, 0.4,
