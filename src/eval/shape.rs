@@ -5,6 +5,7 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::mesh::inside::column_crossings;
 use crate::mesh::MeshData;
 
 /// Points sampled per mesh for the Chamfer distance (as the paper).
@@ -92,33 +93,12 @@ pub fn solid_voxels(mesh: &MeshData, grid: &VoxelGrid) -> Vec<bool> {
     const OFFSET: [f32; 2] = [0.5 + 0.0137, 0.5 - 0.0291];
     let [nx, ny, nz] = grid.dims;
     let (components, _) = mesh.triangle_components();
-    let mut crossings: Vec<Vec<(u32, f32)>> = vec![Vec::new(); nx * ny];
-    for (t, &comp) in mesh.triangles.iter().zip(&components) {
-        let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-        let lo = ((a.min(b).min(c) - grid.min) / grid.voxel).floor();
-        let hi = ((a.max(b).max(c) - grid.min) / grid.voxel).ceil();
-        let (i0, i1) = ((lo.x.max(0.0)) as usize, (hi.x.max(0.0) as usize).min(nx));
-        let (j0, j1) = ((lo.y.max(0.0)) as usize, (hi.y.max(0.0) as usize).min(ny));
-        let det = (b.x - a.x) * (c.y - a.y) - (c.x - a.x) * (b.y - a.y);
-        if det.abs() < 1e-20 {
-            continue; // parallel to the rays
-        }
-        for j in j0..j1 {
-            for i in i0..i1 {
-                let px = grid.min.x + grid.voxel * (i as f32 + OFFSET[0]);
-                let py = grid.min.y + grid.voxel * (j as f32 + OFFSET[1]);
-                let u = ((px - a.x) * (c.y - a.y) - (c.x - a.x) * (py - a.y)) / det;
-                let v = ((b.x - a.x) * (py - a.y) - (px - a.x) * (b.y - a.y)) / det;
-                if u >= 0.0 && v >= 0.0 && u + v <= 1.0 {
-                    crossings[i + nx * j].push((comp, a.z + u * (b.z - a.z) + v * (c.z - a.z)));
-                }
-            }
-        }
-    }
+    let crossings = column_crossings(mesh, 0..mesh.triangles.len(), grid.min, grid.voxel, [nx, ny], OFFSET);
     let mut occupied = vec![false; grid.len()];
     let columns: Vec<Vec<usize>> = crossings
         .into_par_iter()
-        .map(|mut hits| {
+        .map(|column| {
+            let mut hits: Vec<(u32, f32)> = column.iter().map(|h| (components[h.triangle as usize], h.z)).collect();
             hits.sort_by(|x, y| x.0.cmp(&y.0).then(x.1.total_cmp(&y.1)));
             let mut filled = Vec::new();
             for comp in hits.chunk_by(|x, y| x.0 == y.0) {

@@ -11,7 +11,10 @@ use rayon::prelude::*;
 
 use crate::error::{write_atomic, Error, Result};
 
+pub(crate) mod inside;
 pub mod tsdf;
+
+use inside::ComponentSolids;
 
 /// An indexed triangle mesh.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -106,43 +109,23 @@ impl MeshData {
     /// door's bins pressed against its panel, a handle sunk into a door) has
     /// faces inside the solid that no camera can see. Components are taken as
     /// closed; inside means a generalized winding number above 1/4 (1 inside,
-    /// 1/2 on the surface, 0 outside, whatever the triangles' orientation). Fewer than `n` samples only when the
-    /// visible surface is a tiny fraction of the whole.
+    /// 1/2 on the surface, 0 outside, whatever the triangles' orientation;
+    /// [`inside`] says how large components are tested fast). Fewer than `n`
+    /// samples only when the visible surface is a tiny fraction of the whole.
     pub fn sample_outer_surface(&self, n: usize, seed: u64) -> Vec<Vec3> {
-        let (components, count) = self.triangle_components();
-        if count <= 1 {
+        let solids = ComponentSolids::new(self);
+        if solids.count() <= 1 {
             return self.sample_surface(n, seed);
         }
-        let mut members: Vec<Vec<usize>> = vec![Vec::new(); count];
-        for (t, &c) in components.iter().enumerate() {
-            members[c as usize].push(t);
-        }
-        let bounds: Vec<(Vec3, Vec3)> = members
-            .iter()
-            .map(|ts| {
-                ts.iter()
-                    .flat_map(|&t| self.corners(&self.triangles[t]))
-                    .fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), v| {
-                        (lo.min(v), hi.max(v))
-                    })
-            })
-            .collect();
-        let hidden = |k: usize, p: Vec3| {
-            let own = components[k] as usize;
-            (0..count).any(|c| {
-                let (lo, hi) = bounds[c];
-                let eps = Vec3::splat(1e-6);
-                c != own
-                    && p.cmpge(lo - eps).all()
-                    && p.cmple(hi + eps).all()
-                    && self.winding_number(&members[c], p).abs() > 0.25
-            })
-        };
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut out = Vec::with_capacity(n);
         for _ in 0..20 {
             let batch = self.sample_triangles(2 * (n - out.len()), &mut rng);
-            let keep: Vec<Vec3> = batch.par_iter().filter(|(k, p)| !hidden(*k, *p)).map(|(_, p)| *p).collect();
+            let keep: Vec<Vec3> = batch
+                .par_iter()
+                .filter(|(k, p)| !solids.inside_another(solids.component[*k] as usize, *p))
+                .map(|(_, p)| *p)
+                .collect();
             out.extend(keep.into_iter().take(n - out.len()));
             if out.len() == n {
                 break;
