@@ -1931,32 +1931,13 @@ mod tests {
         config.eval_background = [0.0; 3];
         let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
         let node_part: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.x > 0.0)).collect();
-        let members = tracker.gaussians_labelled(&node_part, 1);
-        let centre = members.iter().map(|&i| tracker.gaussians.mean(i)).sum::<Vec3>() / members.len() as f32;
-        let r = Quat::from_rotation_y(-std::f32::consts::FRAC_PI_2);
-        let truth = NodePose { rotation: r, translation: r * centre - centre };
-        let parts = TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]; 2] };
+        let (members, parts, true_set) = one_part_left_at_rest(&mut tracker, node_part, |centre| {
+            let r = Quat::from_rotation_y(-std::f32::consts::FRAC_PI_2);
+            NodePose { rotation: r, translation: r * centre - centre }
+        });
         let n = tracker.node_centres.len();
-        tracker.knots = vec![vec![NodePose::IDENTITY; n]; 2];
-        tracker.gains = vec![vec![0.0; n]; 2];
-        let true_set = tracker.deformed(&parts.node_poses(&tracker.node_centres, &[truth]), &vec![0.0; n]);
         let k = Intrinsics { width: 32, height: 32, fx: 30.0, fy: 30.0, cx: 16.0, cy: 16.0 };
-        let views: Vec<TrainView> = (0..6)
-            .map(|i| {
-                let a = i as f32 * std::f32::consts::TAU / 6.0;
-                let eye = Vec3::new(2.5 * a.cos(), 0.8, 2.5 * a.sin());
-                let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Y);
-                let r = render(&true_set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
-                TrainView {
-                    name: String::new(),
-                    camera,
-                    premultiplied: r.image.color,
-                    alpha: Some(r.image.alpha),
-                    time: Some(1.0),
-                    depth: None,
-                }
-            })
-            .collect();
+        let views = ring_views(&true_set, k, 2.5, 0.8, 0.0);
         tracker.articulation = Some(parts);
         let error = |t: &NodeTracker| {
             let now = t.deformed(&t.knots[1], &vec![0.0; n]);
@@ -2003,37 +1984,60 @@ mod tests {
         config.eval_background = [0.0; 3];
         let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
         let node_part: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.y > 0.015)).collect();
-        let members = tracker.gaussians_labelled(&node_part, 1);
-        assert!(members.len() > 40, "the slider's Gaussians: {}", members.len());
-        let centre = members.iter().map(|&i| tracker.gaussians.mean(i)).sum::<Vec3>() / members.len() as f32;
         let truth = NodePose { rotation: Quat::IDENTITY, translation: Vec3::new(0.5, 0.0, 0.0) };
-        let parts = TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]; 2] };
+        let (members, parts, true_set) = one_part_left_at_rest(&mut tracker, node_part, |_| truth);
+        assert!(members.len() > 40, "the slider's Gaussians: {}", members.len());
         let n = tracker.node_centres.len();
-        tracker.knots = vec![vec![NodePose::IDENTITY; n]; 2];
-        tracker.gains = vec![vec![0.0; n]; 2];
-        let true_set = tracker.deformed(&parts.node_poses(&tracker.node_centres, &[truth]), &vec![0.0; n]);
         let k = Intrinsics { width: 48, height: 48, fx: 45.0, fy: 45.0, cx: 24.0, cy: 24.0 };
-        let views: Vec<TrainView> = (0..6)
-            .map(|i| {
-                let a = i as f32 * std::f32::consts::TAU / 6.0 + 0.3;
-                let eye = Vec3::new(1.6 * a.cos(), 1.4, 1.6 * a.sin());
-                let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Y);
-                let r = render(&true_set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
-                TrainView {
-                    name: String::new(),
-                    camera,
-                    premultiplied: r.image.color,
-                    alpha: Some(r.image.alpha),
-                    time: Some(1.0),
-                    depth: None,
-                }
-            })
-            .collect();
+        let views = ring_views(&true_set, k, 1.6, 1.4, 0.3);
         tracker.articulation = Some(parts);
         assert_eq!(tracker.search_end_poses(&views), 1, "the searched pose replaces the tracked one");
         let now = tracker.deformed(&tracker.knots[1], &vec![0.0; n]);
         let error = members.iter().map(|&i| now.mean(i).distance(true_set.mean(i))).fold(0.0f32, f32::max);
         assert!(error < 0.02, "largest slider Gaussian offset after the search: {error}");
+    }
+
+    /// An end-state (t = 1) view of `set` from `camera`, over black (so the
+    /// colour is the premultiplied colour), alpha included.
+    fn end_view(set: &GaussianSet, camera: Camera) -> TrainView {
+        let r = render(set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
+        TrainView {
+            name: String::new(),
+            camera,
+            premultiplied: r.image.color,
+            alpha: Some(r.image.alpha),
+            time: Some(1.0),
+            depth: None,
+        }
+    }
+
+    /// Six end views of `set` on a ring of `radius` at `height` about the y axis, the first at angle `phase`.
+    fn ring_views(set: &GaussianSet, k: Intrinsics, radius: f32, height: f32, phase: f32) -> Vec<TrainView> {
+        (0..6)
+            .map(|i| {
+                let a = i as f32 * std::f32::consts::TAU / 6.0 + phase;
+                let eye = Vec3::new(radius * a.cos(), height, radius * a.sin());
+                end_view(set, Camera::look_at(k, eye, Vec3::ZERO, Vec3::Y))
+            })
+            .collect()
+    }
+
+    /// Part 1 of `node_part` (one part) left at rest at both of `tracker`'s knots
+    /// (rest and end), while it truly ends at `truth(its centre)`: the part's
+    /// Gaussians, the parts, and the true end state.
+    fn one_part_left_at_rest(
+        tracker: &mut NodeTracker,
+        node_part: Vec<usize>,
+        truth: impl FnOnce(Vec3) -> NodePose,
+    ) -> (Vec<usize>, TrackedParts, GaussianSet) {
+        let members = tracker.gaussians_labelled(&node_part, 1);
+        let centre = members.iter().map(|&i| tracker.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
+        let parts = TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]; 2] };
+        let n = tracker.node_centres.len();
+        tracker.knots = vec![vec![NodePose::IDENTITY; n]; 2];
+        tracker.gains = vec![vec![0.0; n]; 2];
+        let true_set = tracker.deformed(&parts.node_poses(&tracker.node_centres, &[truth(centre)]), &vec![0.0; n]);
+        (members, parts, true_set)
     }
 
     /// A textured base over the whole view and a small part (centre (0.6, 0.4,
@@ -2065,15 +2069,7 @@ mod tests {
         tracker.articulation = Some(parts);
         let k = Intrinsics { width: 96, height: 80, fx: 70.0, fy: 70.0, cx: 47.0, cy: 41.0 };
         let camera = Camera::look_at(k, Vec3::new(0.1, 0.0, -3.0), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0));
-        let rest = render(&tracker.gaussians, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
-        let view = TrainView {
-            name: String::new(),
-            camera,
-            premultiplied: rest.image.color,
-            alpha: Some(rest.image.alpha),
-            time: Some(1.0),
-            depth: None,
-        };
+        let view = end_view(&tracker.gaussians, camera);
         (tracker, view)
     }
 
@@ -2134,18 +2130,7 @@ mod tests {
             .iter()
             .map(|&a| {
                 let eye = Quat::from_rotation_y(a) * cam.position();
-                let camera = Camera::look_at(cam.intrinsics, eye, Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0));
-                // Over black, the colour is the premultiplied colour.
-                let r = render(&true_set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
-                let alpha = Some(r.image.alpha);
-                TrainView {
-                    name: String::new(),
-                    camera,
-                    premultiplied: r.image.color,
-                    alpha,
-                    time: Some(1.0),
-                    depth: None,
-                }
+                end_view(&true_set, Camera::look_at(cam.intrinsics, eye, Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0)))
             })
             .collect();
         tracker.articulation = Some(parts);
