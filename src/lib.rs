@@ -14,6 +14,7 @@ pub mod mesh;
 pub mod motion;
 pub mod render;
 pub mod splat;
+pub mod stream;
 pub mod suite;
 pub mod synth;
 pub mod train;

@@ -25,6 +25,8 @@ struct Cli {
 enum Command {
     /// The built-in end-to-end job on a synthetic object with ground truth.
     Demo(commands::demo::Args),
+    /// One session from a dataset's frames to the twin (stage I while the motion arrives, then stages II and III).
+    Run(commands::run::Args),
     /// Render a 3DGS PLY from a camera to a PNG.
     Render(commands::render::Args),
     /// Benchmarks that print JSON.
@@ -94,6 +96,7 @@ fn main() -> ExitCode {
         Command::TrainStatic(args) => commands::train_static::run(args),
         Command::TrainDynamic(args) => commands::train_dynamic::run(args),
         Command::Demo(args) => commands::demo::run(args),
+        Command::Run(args) => commands::run::run(args),
         Command::Eval(args) => commands::eval::run(args),
         Command::Mesh(args) => commands::mesh::run(args),
         Command::RenderTwin(args) => commands::render_twin::run(args),

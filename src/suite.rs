@@ -20,7 +20,7 @@ use crate::mesh::tsdf::TsdfConfig;
 use crate::motion::JointKind;
 use crate::synth::{object, write_dataset, SynthConfig};
 use crate::train::config::{StageConfig, StaticConfig};
-use crate::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl};
+use crate::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput};
 use crate::train::dynamic_stage::DynamicConfig;
 use crate::train::static_stage::{run_static, RunOutcome, RunSetup};
 use crate::train::views::load_phase_views;
@@ -239,7 +239,8 @@ fn run_one(opts: &SuiteOptions, run: &PlannedRun, interrupt: &AtomicBool) -> Res
     let out = trial_dir.join(run.variant.name());
     let viz = Viz::disabled();
     let control = RunControl { resume: true, interrupt, viz: &viz };
-    match run_dynamic(&data, &static_ply, &out, cfg, &TsdfConfig::default(), &control, |_| {}) {
+    let input = StageTwoInput::load(&data, &cfg)?;
+    match run_dynamic(input, &static_ply, &out, cfg, &TsdfConfig::default(), &control, |_| {}) {
         Ok(DynamicOutcome::Interrupted(_)) => return Ok(None),
         Ok(DynamicOutcome::Finished { metrics, .. }) => {
             record.stage2_wall_s = metrics.wall_time_s;

@@ -136,7 +136,7 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
 
     use aim::mesh::tsdf::TsdfConfig;
     use aim::train::config::StageConfig;
-    use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl};
+    use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput};
     use aim::train::dynamic_stage::DynamicConfig;
 
     let root = tmp("resume");
@@ -161,7 +161,8 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
     let mesh = TsdfConfig { max_voxels_per_axis: 24, views: 8, ..TsdfConfig::default() };
     let never = AtomicBool::new(false);
     let run = |out: &str, control: &RunControl, stop_after: Option<u32>| {
-        run_dynamic(&data, &static_ply, &root.join(out), dyn_cfg.clone(), &mesh, control, |s| {
+        let input = StageTwoInput::load(&data, &dyn_cfg).expect("dataset");
+        run_dynamic(input, &static_ply, &root.join(out), dyn_cfg.clone(), &mesh, control, |s| {
             if stop_after.is_some_and(|k| s.iteration >= k) {
                 control.interrupt.store(true, Ordering::SeqCst);
             }
@@ -183,7 +184,7 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
     let mut other = dyn_cfg.clone();
     other.track.nodes += 1;
     let err = run_dynamic(
-        &data,
+        StageTwoInput::load(&data, &other).expect("dataset"),
         &static_ply,
         &root.join("cut"),
         other,

@@ -10,6 +10,7 @@ pub mod mesh;
 pub mod progress;
 pub mod render;
 pub mod render_twin;
+pub mod run;
 pub mod synth;
 pub mod synth_recording;
 pub mod train_dynamic;

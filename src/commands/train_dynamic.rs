@@ -8,7 +8,7 @@ use aim::eval::ArticulationReport;
 use aim::mesh::tsdf::TsdfConfig;
 use aim::motion::JointKind;
 use aim::train::config::StageConfig;
-use aim::train::dynamic_run::{run_dynamic, DynamicMetrics, DynamicOutcome, RunControl};
+use aim::train::dynamic_run::{run_dynamic, DynamicMetrics, DynamicOutcome, RunControl, StageTwoInput};
 use aim::train::dynamic_stage::{DynamicConfig, PartEstimate};
 
 #[derive(clap::Args)]
@@ -48,7 +48,8 @@ pub fn train_with_progress(
     control: &RunControl,
 ) -> anyhow::Result<Option<(Vec<PartEstimate>, Box<DynamicMetrics>)>> {
     let bar = super::progress::Progress::new("stage II", cfg.iterations);
-    let outcome = run_dynamic(dataset, static_ply, out, cfg, &TsdfConfig::default(), control, |s| {
+    let input = StageTwoInput::load(dataset, &cfg)?;
+    let outcome = run_dynamic(input, static_ply, out, cfg, &TsdfConfig::default(), control, |s| {
         bar.update(s.iteration, || format!("psnr {:.2} static {} moving {}", s.psnr, s.static_count, s.moving_count));
     })?;
     bar.finish();

@@ -4,7 +4,7 @@
 //! parts and joints, write the outputs and the twin, and with ground truth
 //! match the joints. Batch commands, the benchmark suite and tests call this.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
@@ -101,13 +101,54 @@ fn log_step(viz: &Viz, s: &DynamicStep) {
     viz.scalar("stage2/sdmd_moved", s.sdmd_moved as f64);
 }
 
-/// Train stages II and III on `dataset` from the start-state Gaussians in
+/// What stages II and III learn from, in memory: a dataset's phases, or the
+/// frames a session collected from a stream.
+pub struct StageTwoInput {
+    /// Names the input in messages (a dataset folder, a recording).
+    pub source: PathBuf,
+    /// Motion frames, each with its time in [0, 1].
+    pub motion: Vec<TrainView>,
+    /// Held-out motion frames (may be empty).
+    pub test: Vec<TrainView>,
+    /// The start state's views (the dual field trains on them; node tracking
+    /// reads their cameras for revealed content). May be empty for node tracking.
+    pub scan: Vec<TrainView>,
+    /// The end state's views (after the hand lets go); may be empty.
+    pub end: Vec<TrainView>,
+    /// A folder with gt/joints.json (a synthetic dataset), for the joint errors.
+    pub ground_truth: Option<PathBuf>,
+}
+
+impl StageTwoInput {
+    /// The phases of an AiM-layout `dataset` that `cfg`'s method reads, at its resolution.
+    pub fn load(dataset: &Path, cfg: &DynamicConfig) -> Result<Self> {
+        let (motion, test) = load_phase_views(dataset, Phase::Motion, cfg.resolution, cfg.track.depth_weight > 0.0)?;
+        let has = |phase: &str| dataset.join(phase).join("transforms_train.json").exists();
+        let scan_needed = match cfg.method {
+            StageTwoMethod::DualField => true,
+            StageTwoMethod::NodeTrack => cfg.track.revealed_gaussians > 0 && has("start"),
+        };
+        let scan =
+            if scan_needed { load_phase_views(dataset, Phase::Scan, cfg.resolution, false)?.0 } else { Vec::new() };
+        // The end state is optional: a capture may stop right after the motion.
+        let end_used = cfg.method == StageTwoMethod::DualField || cfg.track.end_iterations > 0;
+        let end = if end_used && has("end") {
+            load_phase_views(dataset, Phase::After, cfg.resolution, false)?.0
+        } else {
+            Vec::new()
+        };
+        let ground_truth = dataset.join("gt").join("joints.json").exists().then(|| dataset.to_path_buf());
+        Ok(StageTwoInput { source: dataset.to_path_buf(), motion, test, scan, end, ground_truth })
+    }
+}
+
+/// Train stages II and III on `input` from the start-state Gaussians in
 /// `static_ply` into `out`: checkpoint.bin, metrics.json, the twin in out/twin
 /// (meshes by `mesh`), and the method's own outputs (dual field: moving.ply,
 /// static_pruned.ply, deform.bin; node tracking: static_pruned.ply, moving.ply
 /// at t = 0, track.bin: the node poses at the knots).
 pub fn run_dynamic(
-    dataset: &Path,
+    input: StageTwoInput,
     static_ply: &Path,
     out: &Path,
     cfg: DynamicConfig,
@@ -115,18 +156,19 @@ pub fn run_dynamic(
     control: &RunControl,
     progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
-    let (motion, test) = load_phase_views(dataset, Phase::Motion, cfg.resolution, cfg.track.depth_weight > 0.0)?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    let run = RunFiles { dataset, static_ply, out, mesh, test: &test };
+    let StageTwoInput { source, motion, test, scan, end, ground_truth } = input;
+    let run = RunFiles { source: &source, ground_truth: ground_truth.as_deref(), static_ply, out, mesh, test: &test };
     match cfg.method {
-        StageTwoMethod::DualField => run_dual_field(&run, motion, cfg, control, progress),
-        StageTwoMethod::NodeTrack => run_node_track(&run, motion, cfg, control, progress),
+        StageTwoMethod::DualField => run_dual_field(&run, motion, scan, end, cfg, control, progress),
+        StageTwoMethod::NodeTrack => run_node_track(&run, motion, &scan, end, cfg, control, progress),
     }
 }
 
 /// Where a stage II run reads and writes.
 struct RunFiles<'a> {
-    dataset: &'a Path,
+    source: &'a Path,
+    ground_truth: Option<&'a Path>,
     static_ply: &'a Path,
     out: &'a Path,
     mesh: &'a TsdfConfig,
@@ -137,18 +179,13 @@ struct RunFiles<'a> {
 fn run_dual_field(
     run: &RunFiles,
     motion: Vec<TrainView>,
+    start: Vec<TrainView>,
+    end: Vec<TrainView>,
     cfg: DynamicConfig,
     control: &RunControl,
     mut progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
-    let (dataset, out) = (run.dataset, run.out);
-    let (start, _) = load_phase_views(dataset, Phase::Scan, cfg.resolution, false)?;
-    // The end state is optional: a capture may stop right after the motion.
-    let end = if dataset.join("end").join("transforms_train.json").exists() {
-        load_phase_views(dataset, Phase::After, cfg.resolution, false)?.0
-    } else {
-        Vec::new()
-    };
+    let out = run.out;
     let views = StageTwoViews::new(motion, start, end)?;
     let checkpoint = out.join("checkpoint.bin");
     let (mut trainer, elapsed_before) = if control.resume && checkpoint.exists() {
@@ -223,13 +260,15 @@ fn run_dual_field(
 fn run_node_track(
     run: &RunFiles,
     mut frames: Vec<TrainView>,
+    scan: &[TrainView],
+    mut end_views: Vec<TrainView>,
     cfg: DynamicConfig,
     control: &RunControl,
     mut progress: impl FnMut(&DynamicStep),
 ) -> Result<DynamicOutcome> {
     let out = run.out;
     if frames.is_empty() {
-        return Err(Error::bad_file(run.dataset.join("motion"), "no motion frames to track"));
+        return Err(Error::bad_file(run.source, "no motion frames to track"));
     }
     require_times(&frames)?;
     let time = |v: &TrainView| v.time.unwrap_or(0.0);
@@ -247,12 +286,7 @@ fn run_node_track(
         (t, elapsed)
     } else {
         // The scan's cameras show where the start state's hidden volume is (for revealed content).
-        let wanted = cfg.track.revealed_gaussians > 0;
-        let scan: Vec<_> = if wanted && run.dataset.join("start").join("transforms_train.json").exists() {
-            load_phase_views(run.dataset, Phase::Scan, cfg.resolution, false)?.0.into_iter().map(|v| v.camera).collect()
-        } else {
-            Vec::new()
-        };
+        let scan: Vec<_> = scan.iter().map(|v| v.camera).collect();
         (NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?, &scan)?, 0.0)
     };
     let started = Instant::now();
@@ -291,12 +325,9 @@ fn run_node_track(
     // The end state seen from around the object (the frames after the hand lets
     // go), when the capture has it, at time 1: the parts' end poses are fitted on
     // it, and it is part of the evidence the parts are judged on.
-    let mut end_views =
-        if tracker.config.track.end_iterations > 0 && run.dataset.join("end").join("transforms_train.json").exists() {
-            load_phase_views(run.dataset, Phase::After, tracker.config.resolution, false)?.0
-        } else {
-            Vec::new()
-        };
+    if tracker.config.track.end_iterations == 0 {
+        end_views.clear();
+    }
     end_views.iter_mut().for_each(|v| v.time = Some(1.0));
     tracker.refit_end_poses(&end_views);
     tracker.merge_redundant_parts(&frames, &end_views);
@@ -315,7 +346,7 @@ fn run_node_track(
         tracker.refit_end_poses(&end_views);
     }
     let motion_test_psnr = (!run.test.is_empty()).then(|| tracker.evaluate(run.test));
-    let tracking_error = node_tracking_error(run.dataset, &tracker)?;
+    let tracking_error = run.ground_truth.map(|gt| node_tracking_error(gt, &tracker)).transpose()?;
     let (parts, labels) = tracker.analyse();
     let with_label = |l: usize| tracker.gaussians.subset(&labels.iter().map(|&x| x == l).collect::<Vec<_>>());
     let base = with_label(0);
@@ -346,12 +377,9 @@ fn run_node_track(
     finish(run, control.viz, &base, parts, &part_sets, summary)
 }
 
-/// With ground truth: the tracked nodes' distance from their true positions at
-/// tenths of the motion, per ground-truth part (also logged).
-fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<Option<Vec<TrackingError>>> {
-    if !dataset.join("gt").join("joints.json").exists() {
-        return Ok(None);
-    }
+/// The tracked nodes' distance from their true positions (the ground truth of
+/// the dataset `dataset`) at tenths of the motion, per ground-truth part (also logged).
+fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<Vec<TrackingError>> {
     let gt = GroundTruth::load(dataset)?;
     let at = |t: f32| tracker.poses_at(t).iter().zip(&tracker.node_centres).map(|(p, &c)| c + p.translation).collect();
     let times: Vec<f32> = (1..=10).map(|k| k as f32 / 10.0).collect();
@@ -364,7 +392,7 @@ fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<Option<V
             .collect();
         tracing::info!("tracking error at t = {:.1}: {}", e.time, parts.join("; "));
     }
-    Ok(Some(errors))
+    Ok(errors)
 }
 
 const TRACK_CHECKPOINT_STAGE: &str = "stage II tracking";
@@ -433,8 +461,8 @@ fn finish(
         viz.gaussians(&format!("stage3/part_{}", k + 1), g);
     }
     viz.flush();
-    let gt_path = run.dataset.join("gt").join("joints.json");
-    let gt_report = if gt_path.exists() {
+    let gt_path = run.ground_truth.map(|d| d.join("gt").join("joints.json"));
+    let gt_report = if let Some(gt_path) = gt_path {
         let gt: Vec<_> =
             crate::synth::JointsFile::load(&gt_path)?.joints.iter().map(crate::eval::twin::gt_joint).collect();
         let pred: Vec<PredictedJoint> = parts

@@ -1,0 +1,128 @@
+//! `aim run INPUT --out RUN`: one session from a dataset's frames to the twin
+//! (`aim::stream`): the ingestion thread reads and tags the frames, stage I
+//! trains on the scan while the motion frames arrive, stages II and III run
+//! when the stream ends.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::bail;
+
+use aim::stream::{run_session, Reference, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
+use aim::train::config::{StageConfig, StaticConfig};
+use aim::train::dynamic_stage::DynamicConfig;
+use aim_capture::recording::{open_recording, RecordingOptions};
+use aim_capture::Phase;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// An AiM-layout dataset (start/, motion/, end/), a nerfstudio folder
+    /// (transforms.json) or a COLMAP folder (sparse/ + images/).
+    pub input: PathBuf,
+    /// Output folder: static/ (stage I), dynamic/ (stages II and III, the twin), session.json.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Preset of both stages: cpu or paper.
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// TOML over the preset for stage I (keys of docs/training.md's stage I table).
+    #[arg(long)]
+    pub static_config: Option<PathBuf>,
+    /// TOML over the preset for stage II.
+    #[arg(long)]
+    pub dynamic_config: Option<PathBuf>,
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Stage I iterations (default: the preset's).
+    #[arg(long)]
+    pub static_iterations: Option<u32>,
+    /// Stage II iterations (default: the preset's).
+    #[arg(long)]
+    pub dynamic_iterations: Option<u32>,
+    #[command(flatten)]
+    pub rerun: super::train_static::RerunArgs,
+}
+
+/// Datasets hold posed frames of the object; a raw recording's frames show the
+/// whole room, which the trainers do not model yet (docs/session.md).
+fn is_dataset(path: &Path) -> bool {
+    path.is_dir()
+        && (path.join("start").join("transforms_train.json").exists()
+            || path.join("transforms.json").exists()
+            || (path.join("sparse").is_dir() && path.join("images").is_dir()))
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    if !args.input.exists() {
+        bail!("{}: no such file or folder", args.input.display());
+    }
+    if !is_dataset(&args.input) {
+        bail!(
+            "{}: not a dataset (AiM layout, nerfstudio or COLMAP). Raw recordings (VRS, video, frame folders) are not \
+             trained on yet: their frames show the whole room, and the object crop and hand mask they need are not \
+             built (docs/session.md)",
+            args.input.display()
+        );
+    }
+    let mut cfg = SessionConfig::cpu(0);
+    cfg.stage_one =
+        StaticConfig::resolve(args.static_config.as_deref(), &args.preset, args.seed, args.static_iterations)?;
+    cfg.stage_two =
+        DynamicConfig::resolve(args.dynamic_config.as_deref(), &args.preset, args.seed, args.dynamic_iterations)?;
+    let reference = reference(&args.input, &cfg)?;
+    let opened = open_recording(&args.input, &RecordingOptions::default())?;
+    let interrupt = super::progress::interrupt_on_ctrl_c();
+    let viz = args.rerun.open()?;
+    let control = SessionControl { interrupt: &interrupt, viz: &viz };
+    let stage_one = super::progress::Progress::new("stage I", cfg.stage_one.iterations);
+    let stage_two = super::progress::Progress::new("stage II", cfg.stage_two.iterations);
+    let on_event = |e: SessionEvent| match e {
+        SessionEvent::Window(w) => println!("motion window: {w:?}"),
+        SessionEvent::StageOneStarted { views } => println!("stage I on {views} scan frames, while the motion arrives"),
+        SessionEvent::StageOne(r) => {
+            stage_one.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians))
+        }
+        SessionEvent::StageTwoStarted { motion, end } => {
+            stage_one.finish();
+            println!("stages II and III on {motion} motion frames and {end} end-state frames");
+        }
+        SessionEvent::StageTwo(s) => stage_two.update(s.iteration, || format!("psnr {:.2}", s.psnr)),
+    };
+    match run_session(opened, reference, &args.out, &cfg, &control, &on_event)? {
+        SessionOutcome::Finished { parts, report } => {
+            stage_two.finish();
+            println!(
+                "stage I: {} Gaussians, PSNR {:.2} dB; frames: {} scan, {} motion, {} after",
+                report.stage_one.gaussians,
+                report.stage_one.mean_psnr,
+                report.frames.scan,
+                report.frames.motion,
+                report.frames.after
+            );
+            super::train_dynamic::print_joints(&parts, report.stage_two.gt_report.as_ref());
+            println!(
+                "wrote {} and the twin in {}",
+                args.out.join("session.json").display(),
+                args.out.join("dynamic/twin").display()
+            );
+        }
+        SessionOutcome::Interrupted => {
+            println!("interrupted; the stage that was running wrote its checkpoint in {}", args.out.display())
+        }
+    }
+    Ok(())
+}
+
+/// An AiM dataset's held-out views and ground truth, for the metrics.
+fn reference(input: &Path, cfg: &SessionConfig) -> anyhow::Result<Reference> {
+    if !input.join("start").join("transforms_train.json").exists() {
+        return Ok(Reference::default());
+    }
+    let test = |phase: Phase, width: u32| -> anyhow::Result<Vec<_>> {
+        Ok(aim::train::views::load_phase_views(input, phase, width, false)?.1)
+    };
+    Ok(Reference {
+        scan_test: test(Phase::Scan, cfg.stage_one.resolution)?,
+        motion_test: test(Phase::Motion, cfg.stage_two.resolution)?,
+        ground_truth: input.join("gt").join("joints.json").exists().then(|| input.to_path_buf()),
+    })
+}

@@ -1,0 +1,350 @@
+//! The session: one input's frames to the twin, the stages wired one way.
+//!
+//! source -> ingestion thread (aim-capture: decode, undistort, pose, phases and
+//! the hand-in / hand-out events) -> phase router (the calling thread: frames to
+//! training views, bounded per phase) -> stage I worker (starts when the scan
+//! ends, trains while the motion is still arriving) -> stages II and III (when
+//! the stream ends: the node tracker fits the motion on its whole window) -> the
+//! twin. Batch commands call the same stage code (`run_static`,
+//! `run_dynamic`), so a dataset fed through a session gives the stage
+//! commands' result (test `a_session_on_a_dataset_gives_the_stage_commands_result`).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use aim_capture::detect::{window_of, MotionEvent};
+use aim_capture::ingest::{Ingest, IngestConfig, IngestStats, Message};
+use aim_capture::recording::Opened;
+use aim_capture::{Frame, Phase};
+use serde::Serialize;
+
+use crate::error::{write_atomic, Error, Result};
+use crate::mesh::tsdf::TsdfConfig;
+use crate::train::config::StaticConfig;
+use crate::train::dynamic_run::{run_dynamic, DynamicMetrics, DynamicOutcome, RunControl, StageTwoInput};
+use crate::train::dynamic_stage::{DynamicConfig, DynamicStep, PartEstimate};
+use crate::train::static_stage::{run_static, RunOutcome, RunSetup, StaticMetrics, StepReport};
+use crate::train::views::TrainView;
+use crate::viz::Viz;
+
+/// How a session trains.
+#[derive(Clone, Debug)]
+pub struct SessionConfig {
+    pub stage_one: StaticConfig,
+    pub stage_two: DynamicConfig,
+    pub ingest: IngestConfig,
+    pub mesh: TsdfConfig,
+    /// Frames kept per phase: past it the store keeps every other frame (and
+    /// then every fourth, ...), so memory stays bounded on long captures.
+    pub max_frames_per_phase: usize,
+}
+
+impl SessionConfig {
+    /// The cpu presets of both stages with `seed`.
+    pub fn cpu(seed: u64) -> Self {
+        let mut stage_one = StaticConfig::cpu();
+        stage_one.seed = seed;
+        let mut stage_two = DynamicConfig::cpu();
+        stage_two.seed = seed;
+        SessionConfig {
+            stage_one,
+            stage_two,
+            ingest: IngestConfig::default(),
+            mesh: TsdfConfig::default(),
+            max_frames_per_phase: 512,
+        }
+    }
+}
+
+/// What a session knows that its frames do not carry: held-out views for the
+/// metrics and ground truth (a synthetic dataset's), when there are any.
+#[derive(Default)]
+pub struct Reference {
+    pub scan_test: Vec<TrainView>,
+    pub motion_test: Vec<TrainView>,
+    /// A folder with gt/joints.json.
+    pub ground_truth: Option<PathBuf>,
+}
+
+/// Where a session stops early and what it logs to.
+pub struct SessionControl<'a> {
+    /// Raised (Ctrl-C): the running stage checkpoints and the session stops.
+    pub interrupt: &'a AtomicBool,
+    pub viz: &'a Viz,
+}
+
+/// What a session reports as it goes (from the router and the stage I worker).
+pub enum SessionEvent<'a> {
+    Window(MotionEvent),
+    StageOneStarted { views: usize },
+    StageOne(&'a StepReport),
+    StageTwoStarted { motion: usize, end: usize },
+    StageTwo(&'a DynamicStep),
+}
+
+/// Frames per phase as the router kept them.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct PhaseCounts {
+    pub scan: usize,
+    pub motion: usize,
+    pub after: usize,
+}
+
+/// OUT/session.json.
+#[derive(Clone, Debug, Serialize)]
+pub struct SessionReport {
+    pub source: String,
+    pub frames: PhaseCounts,
+    /// Hand-in and hand-out as the ingestion thread saw them (frame index and
+    /// seconds on the source's clock; a dataset's clock is nominal, per phase).
+    pub events: Vec<MotionEvent>,
+    pub ingest: IngestStats,
+    pub stage_one: StaticMetrics,
+    pub stage_two: DynamicMetrics,
+}
+
+/// How a session ended.
+pub enum SessionOutcome {
+    Finished {
+        parts: Vec<PartEstimate>,
+        report: Box<SessionReport>,
+    },
+    /// Stopped by the interrupt flag; the running stage wrote its checkpoint.
+    Interrupted,
+}
+
+/// Training views of one phase, bounded: past `cap` frames every other one is
+/// dropped and from then on only every `stride`-th frame is kept, so the frames
+/// kept stay spread over the whole phase.
+struct FrameStore {
+    cap: usize,
+    stride: usize,
+    seen: usize,
+    views: Vec<(f64, TrainView)>,
+}
+
+impl FrameStore {
+    fn new(cap: usize) -> Self {
+        FrameStore { cap: cap.max(2), stride: 1, seen: 0, views: Vec::new() }
+    }
+
+    fn push(&mut self, timestamp_s: f64, view: TrainView) {
+        let keep = self.seen.is_multiple_of(self.stride);
+        self.seen += 1;
+        if !keep {
+            return;
+        }
+        if self.views.len() == self.cap {
+            let mut k = 0;
+            self.views.retain(|_| {
+                k += 1;
+                k % 2 == 1
+            });
+            self.stride *= 2;
+            if !(self.seen - 1).is_multiple_of(self.stride) {
+                return;
+            }
+        }
+        self.views.push((timestamp_s, view));
+    }
+}
+
+/// Run `opened` through the ingestion thread to the twin in `out` (static/:
+/// stage I, dynamic/: stages II and III and the twin, session.json).
+pub fn run_session(
+    opened: Opened,
+    reference: Reference,
+    out: &Path,
+    cfg: &SessionConfig,
+    control: &SessionControl,
+    on_event: &(dyn Fn(SessionEvent) + Sync),
+) -> Result<SessionOutcome> {
+    let source = opened.source.describe();
+    let ingest = Ingest::spawn(opened.source, opened.processor, opened.tagger, cfg.ingest.clone())
+        .map_err(|e| Error::Other(format!("starting the ingestion thread: {e}")))?;
+    let static_dir = out.join("static");
+    std::thread::scope(|scope| {
+        let mut scan: Vec<TrainView> = Vec::new();
+        let mut motion = FrameStore::new(cfg.max_frames_per_phase);
+        let mut after = FrameStore::new(cfg.max_frames_per_phase);
+        let mut events = Vec::new();
+        let mut stage_one = None;
+        for message in &ingest {
+            if control.interrupt.load(Ordering::SeqCst) {
+                break;
+            }
+            let frame = match message {
+                Message::Frame(f) => f,
+                Message::Event(e) => {
+                    on_event(SessionEvent::Window(e));
+                    events.push(e);
+                    continue;
+                }
+                Message::Error(e) => return Err(Error::from(e)),
+            };
+            if frame.phase == Phase::Scan {
+                if stage_one.is_some() {
+                    tracing::warn!("{}: a scan frame after the motion began; not used", frame.source);
+                    continue;
+                }
+                scan.push(TrainView::from_frame(&frame, cfg.stage_one.resolution)?);
+                continue;
+            }
+            if stage_one.is_none() {
+                // The scan is over: stage I trains while the motion arrives.
+                if scan.is_empty() {
+                    return Err(Error::bad_file(
+                        &frame.source,
+                        "the motion begins at the first frame: no scan of the start state to train on",
+                    ));
+                }
+                on_event(SessionEvent::StageOneStarted { views: scan.len() });
+                let (views, test, dir) = (std::mem::take(&mut scan), &reference.scan_test, &static_dir);
+                stage_one = Some(scope.spawn(move || {
+                    let setup = RunSetup { run_dir: dir, resume: false, init: None };
+                    let outcome =
+                        run_static(cfg.stage_one.clone(), &views, test, &setup, control.interrupt, control.viz, |r| {
+                            on_event(SessionEvent::StageOne(r))
+                        });
+                    (views, outcome)
+                }));
+            }
+            let view = TrainView::from_frame(&frame, cfg.stage_two.resolution)?;
+            match frame.phase {
+                Phase::Motion => motion.push(frame.timestamp_s, view),
+                _ => after.push(frame.timestamp_s, view),
+            }
+            log_frame(control.viz, &frame);
+        }
+        let (stats, _) = ingest.stop();
+        let interrupted = control.interrupt.load(Ordering::SeqCst);
+        let Some(stage_one) = stage_one else {
+            if interrupted {
+                return Ok(SessionOutcome::Interrupted);
+            }
+            return Err(Error::Other(format!(
+                "{source}: no interaction found ({} scan frame(s), no hand-in): nothing moved, so there is no articulation to learn",
+                scan.len()
+            )));
+        };
+        let (scan_views, outcome) = stage_one.join().map_err(|_| Error::Other("the stage I worker panicked".into()))?;
+        let stage_one_metrics = match outcome? {
+            RunOutcome::Finished(m) if !interrupted => *m,
+            _ => return Ok(SessionOutcome::Interrupted),
+        };
+        let (hand_in_s, hand_out_s) = window_of(&events);
+        let motion_views = timed_motion(motion.views, hand_in_s, hand_out_s, &source)?;
+        let end: Vec<TrainView> = after.views.into_iter().map(|(_, v)| v).collect();
+        let frames = PhaseCounts { scan: scan_views.len(), motion: motion_views.len(), after: end.len() };
+        on_event(SessionEvent::StageTwoStarted { motion: frames.motion, end: frames.after });
+        let input = StageTwoInput {
+            source: PathBuf::from(&source),
+            motion: motion_views,
+            test: reference.motion_test,
+            scan: scan_views,
+            end,
+            ground_truth: reference.ground_truth,
+        };
+        let run_control = RunControl { resume: false, interrupt: control.interrupt, viz: control.viz };
+        let outcome = run_dynamic(
+            input,
+            &static_dir.join("static.ply"),
+            &out.join("dynamic"),
+            cfg.stage_two.clone(),
+            &cfg.mesh,
+            &run_control,
+            |s| on_event(SessionEvent::StageTwo(s)),
+        )?;
+        let DynamicOutcome::Finished { parts, metrics } = outcome else {
+            return Ok(SessionOutcome::Interrupted);
+        };
+        let report =
+            SessionReport { source, frames, events, ingest: stats, stage_one: stage_one_metrics, stage_two: *metrics };
+        let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Other(e.to_string()))?;
+        write_atomic(&out.join("session.json"), &json)?;
+        Ok(SessionOutcome::Finished { parts, report: Box::new(report) })
+    })
+}
+
+/// The motion frames with their time in [0, 1]: the one the source gave, or
+/// from the detected window (seconds since hand-in over the window's length).
+fn timed_motion(
+    frames: Vec<(f64, TrainView)>,
+    hand_in_s: Option<f64>,
+    hand_out_s: Option<f64>,
+    source: &str,
+) -> Result<Vec<TrainView>> {
+    if frames.is_empty() {
+        return Err(Error::Other(format!("{source}: no motion frames between hand-in and hand-out")));
+    }
+    frames
+        .into_iter()
+        .map(|(t, mut v)| {
+            if v.time.is_none() {
+                let (Some(t_in), Some(t_out)) = (hand_in_s, hand_out_s) else {
+                    return Err(Error::Other(format!(
+                        "{source}: the hand never left the object (no hand-out), so the motion has no end to learn to"
+                    )));
+                };
+                v.time = Some(((t - t_in) / (t_out - t_in).max(1e-9)).clamp(0.0, 1.0) as f32);
+            }
+            Ok(v)
+        })
+        .collect()
+}
+
+/// The input frame's camera to rerun.
+fn log_frame(viz: &Viz, frame: &Frame) {
+    if !viz.is_enabled() {
+        return;
+    }
+    viz.camera("session/input/camera", &crate::camera::Camera::new(frame.intrinsics, frame.world_to_camera));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Camera, Intrinsics};
+
+    fn view(k: usize) -> TrainView {
+        let intrinsics = Intrinsics { fx: 10.0, fy: 10.0, cx: 2.0, cy: 2.0, width: 4, height: 4 };
+        TrainView {
+            name: format!("{k}"),
+            camera: Camera::new(intrinsics, glam::Mat4::IDENTITY),
+            premultiplied: vec![0.0; 48],
+            alpha: None,
+            time: None,
+            depth: None,
+        }
+    }
+
+    #[test]
+    fn the_frame_store_stays_bounded_and_spread_over_the_phase() {
+        let mut store = FrameStore::new(64);
+        for k in 0..1000 {
+            store.push(k as f64, view(k));
+        }
+        let kept: Vec<usize> = store.views.iter().map(|(t, _)| *t as usize).collect();
+        assert!(kept.len() <= 64 && kept.len() >= 32, "{} kept", kept.len());
+        // Evenly strided from the first frame to near the last.
+        let stride = kept[1] - kept[0];
+        assert_eq!(stride, 16);
+        assert!(kept.windows(2).all(|w| w[1] - w[0] == stride), "{kept:?}");
+        assert_eq!(kept[0], 0);
+        assert!(*kept.last().unwrap() >= 1000 - stride, "{kept:?}");
+        // Under the cap nothing is dropped.
+        let mut small = FrameStore::new(64);
+        (0..64).for_each(|k| small.push(k as f64, view(k)));
+        assert_eq!(small.views.len(), 64);
+    }
+
+    #[test]
+    fn motion_times_come_from_the_window_when_the_frames_lack_them() {
+        let frames: Vec<(f64, TrainView)> = [10.0, 11.0, 12.5].iter().map(|&t| (t, view(0))).collect();
+        let timed = timed_motion(frames.clone(), Some(10.0), Some(12.0), "rec").expect("a window");
+        let times: Vec<f32> = timed.iter().map(|v| v.time.expect("timed")).collect();
+        assert_eq!(times, vec![0.0, 0.5, 1.0]);
+        let err = timed_motion(frames, Some(10.0), None, "rec").expect_err("no hand-out");
+        assert!(err.to_string().contains("rec") && err.to_string().contains("hand-out"), "{err}");
+    }
+}

@@ -1,0 +1,161 @@
+//! Sessions (`aim::stream`, `aim run`): a dataset fed through the ingestion
+//! thread and the session's router gives exactly what the stage commands give
+//! on it for one seed (the same frames in the same order through the same stage
+//! code); input without an interaction, and input `aim run` cannot train on,
+//! get a message naming it and a non-zero exit.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::AtomicBool;
+
+use aim::stream::{run_session, Reference, SessionConfig, SessionControl, SessionOutcome};
+use aim::synth::dataset::{write_dataset, SynthConfig};
+use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput};
+use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
+use aim::train::views::load_phase_views;
+use aim::viz::Viz;
+use aim_capture::recording::{open_recording, RecordingOptions};
+use aim_capture::Phase;
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("aim-session-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+fn tiny_fridge(data: &Path) {
+    let cfg = SynthConfig {
+        resolution: 32,
+        scan_views: 6,
+        motion_frames: 12,
+        end_views: 2,
+        test_views: 1,
+        motion_test_every: 6,
+        samples_per_pixel: 1,
+        ..Default::default()
+    };
+    write_dataset(&aim::synth::object("fridge").expect("object"), data, &cfg, &|_, _| {}).expect("written");
+}
+
+fn read(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+#[test]
+fn a_session_on_a_dataset_gives_the_stage_commands_result() {
+    let root = tmp("parity");
+    let data = root.join("data");
+    tiny_fridge(&data);
+    let mut cfg = SessionConfig::cpu(3);
+    cfg.stage_one.iterations = 40;
+    cfg.stage_two.iterations = 60;
+    let never = AtomicBool::new(false);
+    let viz = Viz::disabled();
+
+    // The stage commands' path: stage I on the scan's views, stage II on the dataset.
+    let (train, scan_test) = load_phase_views(&data, Phase::Scan, cfg.stage_one.resolution, false).expect("scan");
+    let batch = root.join("batch");
+    let setup = RunSetup { run_dir: &batch.join("static"), resume: false, init: None };
+    let RunOutcome::Finished(batch_one) =
+        run_static(cfg.stage_one.clone(), &train, &scan_test, &setup, &never, &viz, |_| {}).expect("stage I")
+    else {
+        panic!("stage I interrupted")
+    };
+    let control = RunControl { resume: false, interrupt: &never, viz: &viz };
+    let static_ply = batch.join("static").join("static.ply");
+    let DynamicOutcome::Finished { metrics: batch_two, .. } = run_dynamic(
+        StageTwoInput::load(&data, &cfg.stage_two).expect("dataset"),
+        &static_ply,
+        &batch.join("dynamic"),
+        cfg.stage_two.clone(),
+        &cfg.mesh,
+        &control,
+        |_| {},
+    )
+    .expect("stage II") else {
+        panic!("stage II interrupted")
+    };
+
+    // The session: the same dataset through the ingestion thread.
+    let reference = Reference {
+        scan_test,
+        motion_test: load_phase_views(&data, Phase::Motion, cfg.stage_two.resolution, false).expect("motion").1,
+        ground_truth: Some(data.clone()),
+    };
+    let opened = open_recording(&data, &RecordingOptions::default()).expect("opens");
+    let session = root.join("session");
+    let control = SessionControl { interrupt: &never, viz: &viz };
+    let SessionOutcome::Finished { report, .. } =
+        run_session(opened, reference, &session, &cfg, &control, &|_| {}).expect("session")
+    else {
+        panic!("session interrupted")
+    };
+
+    assert_eq!((report.frames.scan, report.frames.motion, report.frames.after), (6, 10, 2));
+    assert_eq!(report.events.len(), 2, "hand-in and hand-out: {:?}", report.events);
+    assert_eq!(report.ingest.dropped, 0, "replay drops nothing");
+    assert_eq!(report.stage_one.mean_psnr, batch_one.mean_psnr);
+    assert_eq!(report.stage_one.gaussians, batch_one.gaussians);
+    assert_eq!(read(&session.join("static/static.ply")), read(&static_ply), "stage I differs");
+    for f in ["dynamic/track.bin", "dynamic/moving.ply", "dynamic/twin/articulation.json"] {
+        assert_eq!(read(&session.join(f)), read(&batch.join(f)), "{f} differs");
+    }
+    assert_eq!(report.stage_two.motion_test_psnr, batch_two.motion_test_psnr);
+    assert_eq!(
+        serde_json::to_value(&report.stage_two.gt_report).expect("json"),
+        serde_json::to_value(&batch_two.gt_report).expect("json")
+    );
+    let written: serde_json::Value = serde_json::from_slice(&read(&session.join("session.json"))).expect("json");
+    assert_eq!(written["frames"]["motion"], 10);
+}
+
+fn aim() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_aim"));
+    c.args(["--log", "error"]);
+    c
+}
+
+#[test]
+fn input_without_an_interaction_is_refused_by_name() {
+    let root = tmp("refused");
+    let data = root.join("data");
+    tiny_fridge(&data);
+    // Only the scan: the hand never comes, nothing moves.
+    let frames = aim_capture::dataset::load_aim(&data, &aim_capture::dataset::LoadOptions { depth: false })
+        .expect("loads")
+        .start
+        .train;
+    let opened = aim_capture::recording::Opened {
+        source: Box::new(aim_capture::source::DatasetSource::from_frames("scan-only", frames)),
+        processor: aim_capture::pipeline::Processor::new(
+            None,
+            &aim_capture::undistort::UndistortConfig::aria_default(),
+            None,
+        ),
+        tagger: aim_capture::pipeline::PhaseTagger::none(),
+        camera: None,
+        trajectory_path: None,
+        hands_path: None,
+        region: None,
+    };
+    let never = AtomicBool::new(false);
+    let viz = Viz::disabled();
+    let control = SessionControl { interrupt: &never, viz: &viz };
+    let err = run_session(opened, Reference::default(), &root.join("out"), &SessionConfig::cpu(0), &control, &|_| {})
+        .err()
+        .expect("no interaction is an error");
+    let msg = err.to_string();
+    assert!(msg.contains("scan-only") && msg.contains("no interaction"), "{msg}");
+
+    // `aim run` on a raw recording: not trained on yet, said with the input's name.
+    let rec = root.join("recording");
+    std::fs::create_dir_all(rec.join("frames")).expect("dir");
+    let out = aim().arg("run").arg(&rec).arg("--out").arg(root.join("run")).output().expect("runs");
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains(&rec.display().to_string()) && stderr.contains("not a dataset"), "{stderr}");
+    let missing = aim().arg("run").arg(root.join("nothing")).arg("--out").arg(root.join("run")).output().expect("runs");
+    assert!(!missing.status.success());
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("no such file"));
+}
