@@ -22,7 +22,7 @@ const VIEWS: usize = 16;
 /// A node is a candidate when its median residual over the views that see it is
 /// above this (mean absolute error per channel) ...
 const MIN_RESIDUAL: f32 = 0.04;
-/// ... and this many times the median over all seen base nodes.
+/// ... and this many times the lower quartile over all seen base nodes.
 const RESIDUAL_RATIO: f32 = 3.0;
 /// Candidates searched per call, largest first (each search costs ~40 s).
 const MAX_CANDIDATES: usize = 4;
@@ -351,9 +351,11 @@ impl NodeTracker {
 }
 
 /// The residual above which a node is wrong: `MIN_RESIDUAL`, or `RESIDUAL_RATIO`
-/// times the median of `sorted` (the seen base nodes' residuals, ascending).
+/// times the lower quartile of `sorted` (the seen base nodes' residuals,
+/// ascending). A quartile, not the median: when a wrongly tracked part drags
+/// base nodes with it, up to half the base can be off and the median with it.
 fn residual_threshold(sorted: &[f32]) -> f32 {
-    MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 2])
+    MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 4])
 }
 
 /// The rigid motion a fraction `f` of the way along the screw motion from rest to `m`.
