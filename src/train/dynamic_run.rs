@@ -337,9 +337,9 @@ fn run_node_track(
         tracker.merge_redundant_parts(&frames, &end_views);
     }
     // A tracked part that still looks wrong where it moved is not a part.
-    tracker.drop_parts_that_look_wrong(&end_views);
+    let returned = tracker.drop_parts_that_look_wrong(&end_views);
     // Parts the tracking never grouped, found where the end state shows the start state moved.
-    if tracker.discover_on_end_state(&frames, &end_views) > 0 {
+    if tracker.discover_on_end_state(&frames, &end_views, &returned) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
     }
     if tracker.clean_parts(&frames, &end_views) > 0 {

@@ -22,7 +22,7 @@ const VIEWS: usize = 16;
 /// A node is a candidate when its median residual over the views that see it is
 /// above this (mean absolute error per channel) ...
 const MIN_RESIDUAL: f32 = 0.04;
-/// ... and this many times the lower quartile over all seen base nodes.
+/// ... and this many times the median over all seen base nodes.
 const RESIDUAL_RATIO: f32 = 3.0;
 /// Candidates searched per call, largest first (each search costs ~40 s).
 const MAX_CANDIDATES: usize = 4;
@@ -33,7 +33,9 @@ impl NodeTracker {
     /// Look for parts among the base's nodes on `end_views` (time 1) and add
     /// those whose searched end pose explains the end state; returns how many
     /// were added or grown. Needs end-state views and the global search (`search_step`).
-    pub fn discover_on_end_state(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
+    /// `returned`: nodes of tracked parts dropped back to the base
+    /// (`drop_parts_that_look_wrong`), left out of the base's residual statistics.
+    pub fn discover_on_end_state(&mut self, frames: &[TrainView], end_views: &[TrainView], returned: &[bool]) -> usize {
         if end_views.is_empty() || self.config.track.search_step <= 0.0 || self.config.track.end_iterations == 0 {
             return 0;
         }
@@ -53,7 +55,7 @@ impl NodeTracker {
         for _ in 0..MAX_CANDIDATES {
             let mut trial = self.articulation.clone().expect("parts set above");
             let residual = self.node_residuals(&trial, 0, &views, false);
-            let (groups, threshold) = self.candidate_groups(&trial, &residual, &tried);
+            let (groups, threshold) = self.candidate_groups(&trial, &residual, &tried, returned);
             let Some(nodes) = groups.into_iter().next() else {
                 break;
             };
@@ -176,8 +178,24 @@ impl NodeTracker {
 
     /// Groups of base nodes (not `tried` before) whose residual is high, each of
     /// at least 1 % of the nodes, connected in the node graph, largest first.
-    fn candidate_groups(&self, parts: &TrackedParts, residual: &[f32], tried: &[bool]) -> (Vec<Vec<usize>>, f32) {
-        let mut seen: Vec<f32> = residual.iter().copied().filter(|r| r.is_finite()).collect();
+    ///
+    /// The threshold scales with the base's own residual, measured without the
+    /// `returned` nodes: a wrong part dropped back to the base is still wrong
+    /// there, and when it is large its residual is the base's median (scissors
+    /// seed 2: 0.14, a threshold of 0.42 that no group passed).
+    fn candidate_groups(
+        &self,
+        parts: &TrackedParts,
+        residual: &[f32],
+        tried: &[bool],
+        returned: &[bool],
+    ) -> (Vec<Vec<usize>>, f32) {
+        let finite = |k: &usize| residual[*k].is_finite();
+        let mut seen: Vec<f32> =
+            (0..residual.len()).filter(finite).filter(|&k| !returned[k]).map(|k| residual[k]).collect();
+        if seen.is_empty() {
+            seen = (0..residual.len()).filter(finite).map(|k| residual[k]).collect();
+        }
         if seen.is_empty() {
             return (Vec::new(), 0.0);
         }
@@ -272,19 +290,20 @@ impl NodeTracker {
     /// sets, moved content the start state had wrong out of sight or onto content
     /// it lacked (the inside of a body the motion revealed), or is a piece whose
     /// motion no end pose explains; its nodes go back to the base (and may be
-    /// found on the end state as a part of their own). Returns the parts dropped.
-    pub fn drop_parts_that_look_wrong(&mut self, end_views: &[TrainView]) -> usize {
+    /// found on the end state as a part of their own). Returns the nodes it gave back to the base.
+    pub fn drop_parts_that_look_wrong(&mut self, end_views: &[TrainView]) -> Vec<bool> {
+        let mut returned = vec![false; self.node_centres.len()];
         let Some(parts) = self.articulation.clone() else {
-            return 0;
+            return returned;
         };
         if end_views.is_empty() || parts.centres.is_empty() {
-            return 0;
+            return returned;
         }
         let views = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
         let mut base: Vec<f32> =
             self.node_residuals(&parts, 0, &views, false).into_iter().filter(|r| r.is_finite()).collect();
         if base.is_empty() {
-            return 0;
+            return returned;
         }
         base.sort_by(f32::total_cmp);
         let threshold = residual_threshold(&base);
@@ -305,14 +324,16 @@ impl NodeTracker {
                 "stage II: a tracked part where it moved"
             );
             if wrong {
-                node_part.iter_mut().filter(|l| **l == p + 1).for_each(|l| *l = 0);
+                for (l, r) in node_part.iter_mut().zip(returned.iter_mut()).filter(|(l, _)| **l == p + 1) {
+                    (*l, *r) = (0, true);
+                }
                 dropped += 1;
             }
         }
         if dropped > 0 {
             self.set_articulation(parts.relabelled(node_part));
         }
-        dropped
+        returned
     }
 
     /// Part `p`'s poses at the knots between rest and its end pose, each the
@@ -351,11 +372,9 @@ impl NodeTracker {
 }
 
 /// The residual above which a node is wrong: `MIN_RESIDUAL`, or `RESIDUAL_RATIO`
-/// times the lower quartile of `sorted` (the seen base nodes' residuals,
-/// ascending). A quartile, not the median: when a wrongly tracked part drags
-/// base nodes with it, up to half the base can be off and the median with it.
+/// times the median of `sorted` (the seen base nodes' residuals, ascending).
 fn residual_threshold(sorted: &[f32]) -> f32 {
-    MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 4])
+    MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 2])
 }
 
 /// The rigid motion a fraction `f` of the way along the screw motion from rest to `m`.
@@ -452,7 +471,8 @@ mod tests {
         let (_, _, half) = plates(0.5);
         let end_views = views_of(&end, 1.0, 16);
         let frames = views_of(&half, 0.5, 1);
-        assert_eq!(tracker.discover_on_end_state(&frames, &end_views), 1, "one part found");
+        let none = vec![false; tracker.node_centres.len()];
+        assert_eq!(tracker.discover_on_end_state(&frames, &end_views, &none), 1, "one part found");
         let parts = tracker.articulation.clone().expect("parts");
         assert_eq!(parts.centres.len(), 1);
         let members = tracker.gaussians_labelled(&parts.node_part, 1);
@@ -483,7 +503,8 @@ mod tests {
     fn nothing_is_found_when_the_end_state_is_the_start_state() {
         let (mut tracker, _, rest) = plates(0.0);
         let end_views = views_of(&rest, 1.0, 16);
-        assert_eq!(tracker.discover_on_end_state(&views_of(&rest, 0.5, 1), &end_views), 0);
+        let none = vec![false; tracker.node_centres.len()];
+        assert_eq!(tracker.discover_on_end_state(&views_of(&rest, 0.5, 1), &end_views, &none), 0);
         assert!(tracker.articulation.is_none(), "no part, and the free trajectories kept");
     }
 
@@ -524,7 +545,10 @@ mod tests {
         ];
         let door_nodes = node_part.iter().filter(|&&l| l == 1).count();
         tracker.set_articulation(TrackedParts { node_part, centres: vec![door, strip], poses });
-        assert_eq!(tracker.drop_parts_that_look_wrong(&views_of(&end, 1.0, 16)), 1, "the strip dropped");
+        let strip_nodes: Vec<bool> =
+            tracker.articulation.as_ref().expect("set").node_part.iter().map(|&l| l == 2).collect();
+        let returned = tracker.drop_parts_that_look_wrong(&views_of(&end, 1.0, 16));
+        assert_eq!(returned, strip_nodes, "the strip dropped, and only it");
         let parts = tracker.articulation.clone().expect("parts");
         assert_eq!(parts.centres.len(), 1, "the door kept");
         assert_eq!(parts.node_part.iter().filter(|&&l| l == 1).count(), door_nodes, "the door's nodes unchanged");
