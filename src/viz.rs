@@ -88,6 +88,16 @@ impl Viz {
         let _ = (path, value);
     }
 
+    /// A line of text (events: hand-in, hand-out, a stage starting).
+    pub fn text(&self, path: &str, message: &str) {
+        #[cfg(feature = "rerun")]
+        if let Some(rec) = &self.rec {
+            log_or_warn(rec.log(path, &rerun::TextLog::new(message)));
+        }
+        #[cfg(not(feature = "rerun"))]
+        let _ = (path, message);
+    }
+
     /// Gaussians as points: centre, base colour (SH DC), radius = largest scale.
     pub fn gaussians(&self, path: &str, gs: &GaussianSet) {
         #[cfg(feature = "rerun")]

@@ -159,3 +159,41 @@ fn input_without_an_interaction_is_refused_by_name() {
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("no such file"));
 }
+
+#[test]
+fn aim_run_logs_the_session_to_rerun() {
+    let root = tmp("rerun");
+    let data = root.join("data");
+    tiny_fridge(&data);
+    let rrd = root.join("session.rrd");
+    let out = aim()
+        .arg("run")
+        .arg(&data)
+        .arg("--out")
+        .arg(root.join("run"))
+        .args(["--static-iterations", "20", "--dynamic-iterations", "30", "--rrd"])
+        .arg(&rrd)
+        .output()
+        .expect("runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("moving part(s) found") && stdout.contains("session.json"), "{stdout}");
+    // rerun's own CLI checks the file and lists the documented entities (docs/session.md).
+    let verify = Command::new("python3").args(["-m", "rerun", "rrd", "verify"]).arg(&rrd).output().expect("rerun");
+    assert!(verify.status.success(), "{}", String::from_utf8_lossy(&verify.stderr));
+    let print =
+        Command::new("python3").args(["-m", "rerun", "rrd", "print", "--verbose"]).arg(&rrd).output().expect("rerun");
+    assert!(print.status.success(), "{}", String::from_utf8_lossy(&print.stderr));
+    let listing = String::from_utf8_lossy(&print.stdout);
+    for entity in [
+        "/session/events",
+        "/session/input/scan",
+        "/session/input/motion",
+        "/session/input/after",
+        "/train/psnr",
+        "/stage2/psnr",
+        "/stage2/tracked/t1",
+    ] {
+        assert!(listing.contains(entity), "{entity} missing from the recording");
+    }
+}

@@ -176,12 +176,14 @@ pub fn run_session(
             let frame = match message {
                 Message::Frame(f) => f,
                 Message::Event(e) => {
+                    control.viz.text("session/events", &format!("{e:?}"));
                     on_event(SessionEvent::Window(e));
                     events.push(e);
                     continue;
                 }
                 Message::Error(e) => return Err(Error::from(e)),
             };
+            log_frame(control.viz, &frame);
             if frame.phase == Phase::Scan {
                 if stage_one.is_some() {
                     tracing::warn!("{}: a scan frame after the motion began; not used", frame.source);
@@ -198,6 +200,7 @@ pub fn run_session(
                         "the motion begins at the first frame: no scan of the start state to train on",
                     ));
                 }
+                control.viz.text("session/events", &format!("stage I starts on {} scan frames", scan.len()));
                 on_event(SessionEvent::StageOneStarted { views: scan.len() });
                 let (views, test, dir) = (std::mem::take(&mut scan), &reference.scan_test, &static_dir);
                 stage_one = Some(scope.spawn(move || {
@@ -214,7 +217,6 @@ pub fn run_session(
                 Phase::Motion => motion.push(frame.timestamp_s, view),
                 _ => after.push(frame.timestamp_s, view),
             }
-            log_frame(control.viz, &frame);
         }
         let (stats, _) = ingest.stop();
         let interrupted = control.interrupt.load(Ordering::SeqCst);
@@ -236,6 +238,10 @@ pub fn run_session(
         let motion_views = timed_motion(motion.views, hand_in_s, hand_out_s, &source)?;
         let end: Vec<TrainView> = after.views.into_iter().map(|(_, v)| v).collect();
         let frames = PhaseCounts { scan: scan_views.len(), motion: motion_views.len(), after: end.len() };
+        control.viz.text(
+            "session/events",
+            &format!("stages II and III start on {} motion and {} end-state frames", frames.motion, frames.after),
+        );
         on_event(SessionEvent::StageTwoStarted { motion: frames.motion, end: frames.after });
         let input = StageTwoInput {
             source: PathBuf::from(&source),
@@ -293,12 +299,19 @@ fn timed_motion(
         .collect()
 }
 
-/// The input frame's camera to rerun.
+/// The input frame's camera to rerun, under its phase (session/input/scan,
+/// motion, after), so the viewer shows where the wearer looked in each.
 fn log_frame(viz: &Viz, frame: &Frame) {
     if !viz.is_enabled() {
         return;
     }
-    viz.camera("session/input/camera", &crate::camera::Camera::new(frame.intrinsics, frame.world_to_camera));
+    let phase = match frame.phase {
+        Phase::Scan => "scan",
+        Phase::Motion => "motion",
+        Phase::After => "after",
+    };
+    let camera = crate::camera::Camera::new(frame.intrinsics, frame.world_to_camera);
+    viz.camera(&format!("session/input/{phase}"), &camera);
 }
 
 #[cfg(test)]
