@@ -206,7 +206,7 @@ fn run_one(opts: &SuiteOptions, run: &PlannedRun, interrupt: &AtomicBool) -> Res
     let obj = object(&run.object)?;
     let seed = u64::from(run.trial);
     let data = opts.out.join("data").join(format!("{}_t{}", run.object, run.trial));
-    if !data.join("gt").join("joints.json").exists() {
+    if !crate::eval::twin::has_ground_truth(&data) {
         let synth = SynthConfig { seed, ..opts.synth.clone() };
         write_dataset(&obj, &data, &synth, &|_, _| {})?;
     }

@@ -385,16 +385,20 @@ pub fn collect_all(
     (frames, events, stats)
 }
 
+/// The time within the motion of a frame at `timestamp_s`:
+/// `(t - hand_in) / (hand_out - hand_in)` in [0, 1]; None until `events` hold a
+/// hand-in and a later hand-out (the whole window is known).
+pub fn motion_time(timestamp_s: f64, events: &[MotionEvent]) -> Option<f32> {
+    let (Some(t_in), Some(t_out)) = crate::detect::window_of(events) else { return None };
+    (t_out > t_in).then(|| ((timestamp_s - t_in) / (t_out - t_in)).clamp(0.0, 1.0) as f32)
+}
+
 /// Batch only (the whole window is known): give `Motion` frames without a motion time
-/// `motion_time = (t - hand_in) / (hand_out - hand_in)` in [0, 1].
+/// their [`motion_time`].
 pub fn fill_motion_time(frames: &mut [Frame], events: &[MotionEvent]) {
-    let (Some(t_in), Some(t_out)) = crate::detect::window_of(events) else { return };
-    if t_out <= t_in {
-        return;
-    }
     for f in frames.iter_mut() {
         if f.phase == crate::frame::Phase::Motion && f.motion_time.is_none() {
-            f.motion_time = Some(((f.timestamp_s - t_in) / (t_out - t_in)).clamp(0.0, 1.0) as f32);
+            f.motion_time = motion_time(f.timestamp_s, events);
         }
     }
 }

@@ -326,21 +326,43 @@ impl FrameSource for RepeatSource {
     }
 }
 
-/// Open a recording by what it is: a `.vrs` file, an AiM dataset folder (has
-/// `start/transforms_train.json`), a nerfstudio folder (`transforms.json`), a COLMAP
-/// folder (`sparse/` + `images/`), a synthetic Aria-like recording (`frames/`), a folder
-/// of images, or (feature `video`) a video file.
+/// The layouts of posed datasets (frames already undistorted and posed).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DatasetLayout {
+    /// `start/transforms_train.json` (and motion/, end/).
+    Aim,
+    /// `transforms.json`.
+    Nerfstudio,
+    /// `sparse/` + `images/`.
+    Colmap,
+}
+
+/// The dataset layout of the folder `path`, if it is a dataset.
+pub fn dataset_layout(path: &Path) -> Option<DatasetLayout> {
+    if !path.is_dir() {
+        None
+    } else if path.join("start").join("transforms_train.json").exists() {
+        Some(DatasetLayout::Aim)
+    } else if path.join("transforms.json").exists() {
+        Some(DatasetLayout::Nerfstudio)
+    } else if path.join("sparse").is_dir() && path.join("images").is_dir() {
+        Some(DatasetLayout::Colmap)
+    } else {
+        None
+    }
+}
+
+/// Open a recording by what it is: a dataset ([`dataset_layout`]), a `.vrs` file,
+/// a synthetic Aria-like recording (`frames/`), a folder of images, or (feature
+/// `video`) a video file.
 pub fn open_source(path: &Path, fps: f64) -> Result<Box<dyn FrameSource>> {
+    match dataset_layout(path) {
+        Some(DatasetLayout::Aim) => return Ok(Box::new(DatasetSource::aim(path)?)),
+        Some(DatasetLayout::Nerfstudio) => return Ok(Box::new(DatasetSource::nerfstudio(path)?)),
+        Some(DatasetLayout::Colmap) => return Ok(Box::new(DatasetSource::colmap(path)?)),
+        None => {}
+    }
     if path.is_dir() {
-        if path.join("start").join("transforms_train.json").exists() {
-            return Ok(Box::new(DatasetSource::aim(path)?));
-        }
-        if path.join("transforms.json").exists() {
-            return Ok(Box::new(DatasetSource::nerfstudio(path)?));
-        }
-        if path.join("sparse").is_dir() && path.join("images").is_dir() {
-            return Ok(Box::new(DatasetSource::colmap(path)?));
-        }
         // A synthetic Aria-like recording: frames/ + calibration.json.
         let frames = path.join("frames");
         if frames.is_dir() {

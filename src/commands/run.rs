@@ -7,10 +7,12 @@ use std::path::{Path, PathBuf};
 
 use anyhow::bail;
 
+use aim::eval::twin::has_ground_truth;
 use aim::stream::{run_session, Reference, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
 use aim::train::config::{StageConfig, StaticConfig};
 use aim::train::dynamic_stage::DynamicConfig;
 use aim_capture::recording::{open_recording, RecordingOptions};
+use aim_capture::source::{dataset_layout, DatasetLayout};
 use aim_capture::Phase;
 
 #[derive(clap::Args)]
@@ -42,33 +44,26 @@ pub struct Args {
     pub rerun: super::train_static::RerunArgs,
 }
 
-/// Datasets hold posed frames of the object; a raw recording's frames show the
-/// whole room, which the trainers do not model yet (docs/session.md).
-fn is_dataset(path: &Path) -> bool {
-    path.is_dir()
-        && (path.join("start").join("transforms_train.json").exists()
-            || path.join("transforms.json").exists()
-            || (path.join("sparse").is_dir() && path.join("images").is_dir()))
-}
-
 pub fn run(args: Args) -> anyhow::Result<()> {
     if !args.input.exists() {
         bail!("{}: no such file or folder", args.input.display());
     }
-    if !is_dataset(&args.input) {
+    // Datasets hold posed frames of the object; a raw recording's frames show the
+    // whole room, which the trainers do not model yet (docs/session.md).
+    let Some(layout) = dataset_layout(&args.input) else {
         bail!(
             "{}: not a dataset (AiM layout, nerfstudio or COLMAP). Raw recordings (VRS, video, frame folders) are not \
              trained on yet: their frames show the whole room, and the object crop and hand mask they need are not \
              built (docs/session.md)",
             args.input.display()
         );
-    }
+    };
     let mut cfg = SessionConfig::cpu(0);
     cfg.stage_one =
         StaticConfig::resolve(args.static_config.as_deref(), &args.preset, args.seed, args.static_iterations)?;
     cfg.stage_two =
         DynamicConfig::resolve(args.dynamic_config.as_deref(), &args.preset, args.seed, args.dynamic_iterations)?;
-    let reference = reference(&args.input, &cfg)?;
+    let reference = if layout == DatasetLayout::Aim { reference(&args.input, &cfg)? } else { Reference::default() };
     let opened = open_recording(&args.input, &RecordingOptions::default())?;
     let interrupt = super::progress::interrupt_on_ctrl_c();
     let viz = args.rerun.open()?;
@@ -114,15 +109,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// An AiM dataset's held-out views and ground truth, for the metrics.
 fn reference(input: &Path, cfg: &SessionConfig) -> anyhow::Result<Reference> {
-    if !input.join("start").join("transforms_train.json").exists() {
-        return Ok(Reference::default());
-    }
     let test = |phase: Phase, width: u32| -> anyhow::Result<Vec<_>> {
         Ok(aim::train::views::load_phase_views(input, phase, width, false)?.1)
     };
     Ok(Reference {
         scan_test: test(Phase::Scan, cfg.stage_one.resolution)?,
         motion_test: test(Phase::Motion, cfg.stage_two.resolution)?,
-        ground_truth: input.join("gt").join("joints.json").exists().then(|| input.to_path_buf()),
+        ground_truth: has_ground_truth(input).then(|| input.to_path_buf()),
     })
 }

@@ -105,6 +105,11 @@ pub struct GroundTruth {
     pub meshes: Vec<(usize, MeshData)>,
 }
 
+/// Whether `dataset` has ground truth (a synthetic dataset's gt/joints.json).
+pub fn has_ground_truth(dataset: &Path) -> bool {
+    dataset.join("gt").join("joints.json").exists()
+}
+
 impl GroundTruth {
     pub fn load(dataset: &Path) -> Result<Self> {
         let gt = dataset.join("gt");

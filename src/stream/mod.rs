@@ -12,8 +12,8 @@
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use aim_capture::detect::{window_of, MotionEvent};
-use aim_capture::ingest::{Ingest, IngestConfig, IngestStats, Message};
+use aim_capture::detect::MotionEvent;
+use aim_capture::ingest::{motion_time, Ingest, IngestConfig, IngestStats, Message};
 use aim_capture::recording::Opened;
 use aim_capture::{Frame, Phase};
 use serde::Serialize;
@@ -234,8 +234,7 @@ pub fn run_session(
             RunOutcome::Finished(m) if !interrupted => *m,
             _ => return Ok(SessionOutcome::Interrupted),
         };
-        let (hand_in_s, hand_out_s) = window_of(&events);
-        let motion_views = timed_motion(motion.views, hand_in_s, hand_out_s, &source)?;
+        let motion_views = timed_motion(motion.views, &events, &source)?;
         let end: Vec<TrainView> = after.views.into_iter().map(|(_, v)| v).collect();
         let frames = PhaseCounts { scan: scan_views.len(), motion: motion_views.len(), after: end.len() };
         control.viz.text(
@@ -273,13 +272,8 @@ pub fn run_session(
 }
 
 /// The motion frames with their time in [0, 1]: the one the source gave, or
-/// from the detected window (seconds since hand-in over the window's length).
-fn timed_motion(
-    frames: Vec<(f64, TrainView)>,
-    hand_in_s: Option<f64>,
-    hand_out_s: Option<f64>,
-    source: &str,
-) -> Result<Vec<TrainView>> {
+/// from the detected window (`aim_capture::ingest::motion_time`).
+fn timed_motion(frames: Vec<(f64, TrainView)>, events: &[MotionEvent], source: &str) -> Result<Vec<TrainView>> {
     if frames.is_empty() {
         return Err(Error::Other(format!("{source}: no motion frames between hand-in and hand-out")));
     }
@@ -287,12 +281,11 @@ fn timed_motion(
         .into_iter()
         .map(|(t, mut v)| {
             if v.time.is_none() {
-                let (Some(t_in), Some(t_out)) = (hand_in_s, hand_out_s) else {
-                    return Err(Error::Other(format!(
-                        "{source}: the hand never left the object (no hand-out), so the motion has no end to learn to"
-                    )));
-                };
-                v.time = Some(((t - t_in) / (t_out - t_in).max(1e-9)).clamp(0.0, 1.0) as f32);
+                v.time = Some(motion_time(t, events).ok_or_else(|| {
+                    Error::Other(format!(
+                        "{source}: the hand never left the object (no hand-out after the hand-in), so the motion has no end to learn to"
+                    ))
+                })?);
             }
             Ok(v)
         })
@@ -354,10 +347,12 @@ mod tests {
     #[test]
     fn motion_times_come_from_the_window_when_the_frames_lack_them() {
         let frames: Vec<(f64, TrainView)> = [10.0, 11.0, 12.5].iter().map(|&t| (t, view(0))).collect();
-        let timed = timed_motion(frames.clone(), Some(10.0), Some(12.0), "rec").expect("a window");
+        let hand_in = MotionEvent::HandIn { frame: 0, timestamp_s: 10.0 };
+        let window = [hand_in, MotionEvent::HandOut { frame: 2, timestamp_s: 12.0 }];
+        let timed = timed_motion(frames.clone(), &window, "rec").expect("a window");
         let times: Vec<f32> = timed.iter().map(|v| v.time.expect("timed")).collect();
         assert_eq!(times, vec![0.0, 0.5, 1.0]);
-        let err = timed_motion(frames, Some(10.0), None, "rec").expect_err("no hand-out");
+        let err = timed_motion(frames, &[hand_in], "rec").expect_err("no hand-out");
         assert!(err.to_string().contains("rec") && err.to_string().contains("hand-out"), "{err}");
     }
 }

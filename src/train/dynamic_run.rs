@@ -137,7 +137,7 @@ impl StageTwoInput {
         } else {
             Vec::new()
         };
-        let ground_truth = dataset.join("gt").join("joints.json").exists().then(|| dataset.to_path_buf());
+        let ground_truth = crate::eval::twin::has_ground_truth(dataset).then(|| dataset.to_path_buf());
         Ok(StageTwoInput { source: dataset.to_path_buf(), motion, test, scan, end, ground_truth })
     }
 }

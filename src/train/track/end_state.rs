@@ -308,7 +308,6 @@ impl NodeTracker {
         base.sort_by(f32::total_cmp);
         let threshold = residual_threshold(&base);
         let mut node_part = parts.node_part.clone();
-        let mut dropped = 0;
         for p in 0..parts.centres.len() {
             let nodes = parts.node_part.iter().filter(|&&l| l == p + 1).count();
             let (seen, median) = self.residual_where_moved(p, &views);
@@ -327,10 +326,9 @@ impl NodeTracker {
                 for (l, r) in node_part.iter_mut().zip(returned.iter_mut()).filter(|(l, _)| **l == p + 1) {
                     (*l, *r) = (0, true);
                 }
-                dropped += 1;
             }
         }
-        if dropped > 0 {
+        if returned.contains(&true) {
             self.set_articulation(parts.relabelled(node_part));
         }
         returned
