@@ -6,8 +6,9 @@ use std::path::{Path, PathBuf};
 
 use aim::synth::objects;
 use aim::synth::recording::{write_recording, RecordingConfig, RecordingSummary};
+use aim_capture::crop::DEFAULT_MARGIN;
 use aim_capture::detect::MotionEvent;
-use aim_capture::recording::{open_recording, DetectorKind, RecordingOptions};
+use aim_capture::recording::{cropped_frame, open_recording, DetectorKind, RecordingOptions};
 use aim_capture::undistort::UndistortConfig;
 use aim_capture::Phase;
 
@@ -123,5 +124,73 @@ fn synthetic_recording_without_hand_has_no_window() {
         assert!(events.is_empty(), "{det:?}: {events:?}");
         assert!(frames.iter().all(|f| f.phase == Phase::Scan));
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `aim capture crop`'s frame: the undistorted frame cut to the object region is
+/// the same pinhole camera (a crop pixel shows what the whole frame shows along
+/// its ray), the object is in it, and only rays that miss the region are background.
+#[test]
+fn the_object_crop_is_the_frame_seen_through_the_region() {
+    let dir = tmp("crop");
+    write_recording(&objects::fridge(), &small(false), &dir).unwrap();
+    let options = opts(DetectorKind::None);
+    let index = 7;
+    let crop = cropped_frame(&dir, index, &options, 96, DEFAULT_MARGIN).unwrap();
+    let (whole, _, _) = open_recording(&dir, &options).unwrap().collect();
+    let whole = &whole[index];
+    assert_eq!(crop.world_to_camera, whole.world_to_camera);
+    let (k, kw) = (crop.intrinsics, whole.intrinsics);
+    assert_eq!((k.width, k.height, crop.image.width(), crop.image.height()), (96, 96, 96, 96));
+    let region: aim_capture::detect::ObjectRegion =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("object_region.json")).unwrap()).unwrap();
+    let c2w = crop.world_to_camera.inverse();
+    let eye = c2w.transform_point3(glam::Vec3::ZERO);
+    let (lo, hi) = (glam::Vec3::from(region.min.map(|v| v as f32)), glam::Vec3::from(region.max.map(|v| v as f32)));
+    let hits_region = |dir: glam::Vec3| {
+        let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+        for a in 0..3 {
+            let (ta, tb) = ((lo[a] - eye[a]) / dir[a], (hi[a] - eye[a]) / dir[a]);
+            (t0, t1) = (t0.max(ta.min(tb)), t1.min(ta.max(tb)));
+        }
+        t0 <= t1
+    };
+    let (mut object, mut background, mut compared, mut difference) = (0, 0, 0, 0.0f32);
+    for (i, j, p) in crop.image.enumerate_pixels() {
+        let ray = k.unproject(i as f32 + 0.5, j as f32 + 0.5);
+        let hit = hits_region(c2w.transform_vector3(ray));
+        match p[3] {
+            255 => {
+                object += 1;
+                assert!(hit, "pixel ({i}, {j}) kept, but its ray misses the region");
+            }
+            0 => {
+                background += 1;
+                assert!(!hit, "pixel ({i}, {j}) is background, but its ray crosses the region");
+            }
+            _ => {}
+        }
+        // A kept pixel shows what the whole frame shows along its ray.
+        let (u, v) = (kw.fx * ray.x / ray.z + kw.cx, kw.fy * ray.y / ray.z + kw.cy);
+        if p[3] == 255 && u >= 1.0 && v >= 1.0 && u < kw.width as f32 - 1.0 && v < kw.height as f32 - 1.0 {
+            let (x, y) = (u - 0.5, v - 0.5);
+            let (x0, y0) = (x.floor(), y.floor());
+            let (ax, ay) = (x - x0, y - y0);
+            let at = |dx: u32, dy: u32| whole.image.get_pixel(x0 as u32 + dx, y0 as u32 + dy)[1] as f32;
+            let seen =
+                (1.0 - ay) * ((1.0 - ax) * at(0, 0) + ax * at(1, 0)) + ay * ((1.0 - ax) * at(0, 1) + ax * at(1, 1));
+            difference += (p[1] as f32 - seen).abs();
+            compared += 1;
+        }
+    }
+    let mean_difference = difference / compared as f32;
+    assert!(mean_difference < 2.0, "crop and frame differ by {mean_difference} levels on average");
+    assert!(compared > 96 * 96 / 4, "{compared} pixels compared");
+    assert!(object > 96 * 96 / 4 && background > 0, "{object} object, {background} background pixels");
+    // The object's centre is in the crop and not background.
+    let c = crop.world_to_camera.transform_point3(glam::Vec3::ZERO);
+    let (u, v) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
+    assert!((0.0..96.0).contains(&u) && (0.0..96.0).contains(&v), "centre at ({u}, {v})");
+    assert_eq!(crop.image.get_pixel(u as u32, v as u32)[3], 255);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -196,9 +196,11 @@ impl ObjectRegion {
     pub fn image_rect(&self, w2c: &Mat4, k: &Intrinsics) -> Option<(u32, u32, u32, u32)> {
         let mut lo = [f32::INFINITY; 2];
         let mut hi = [f32::NEG_INFINITY; 2];
-        let mut any = false;
-        for c in self.corners() {
-            let p = *w2c * Vec4::new(c.x, c.y, c.z, 1.0);
+        let points = self.corners().map(|c| *w2c * Vec4::new(c.x, c.y, c.z, 1.0));
+        if points.iter().all(|p| p.z <= 1e-3) {
+            return None;
+        }
+        for p in points {
             if p.z <= 1e-3 {
                 // A corner behind the camera: be conservative and take the whole image.
                 return Some((0, 0, k.width, k.height));
@@ -207,10 +209,6 @@ impl ObjectRegion {
             let v = k.fy * p.y / p.z + k.cy;
             lo = [lo[0].min(u), lo[1].min(v)];
             hi = [hi[0].max(u), hi[1].max(v)];
-            any = true;
-        }
-        if !any {
-            return None;
         }
         let x0 = lo[0].floor().clamp(0.0, k.width as f32) as u32;
         let y0 = lo[1].floor().clamp(0.0, k.height as f32) as u32;

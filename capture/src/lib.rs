@@ -4,6 +4,7 @@
 pub mod aria;
 pub mod bench;
 pub mod calib;
+pub mod crop;
 pub mod dataset;
 pub mod detect;
 pub mod error;

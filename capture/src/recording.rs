@@ -327,6 +327,35 @@ pub fn inspect(path: &Path, opts: &RecordingOptions) -> Result<InspectReport> {
     })
 }
 
+/// Frame `index` of a recording, undistorted, posed and cut to the object
+/// region ([`crate::crop::ObjectCrop`], `size` pixels square): what the trainers
+/// see of it.
+pub fn cropped_frame(path: &Path, index: usize, opts: &RecordingOptions, size: u32, margin: f32) -> Result<Frame> {
+    let opened = open_recording(path, opts)?;
+    let region = opened.region.ok_or_else(|| {
+        Error::bad_file(path, "no object region (object_region.json beside the recording, or --region)")
+    })?;
+    let mut source = opened.source;
+    let mut k = 0;
+    while let Some(r) = source.next_frame() {
+        if k == index {
+            let p = opened.processor.process(r?).map_err(|e| Error::bad_file(path, format!("frame {index}: {e:?}")))?;
+            if !p.posed {
+                return Err(Error::bad_file(
+                    path,
+                    format!("frame {index}: no camera pose (MPS trajectory) at its time"),
+                ));
+            }
+            let crop = crate::crop::ObjectCrop { region, size, margin };
+            return crop
+                .apply(&p.frame)
+                .ok_or_else(|| Error::bad_file(path, format!("frame {index}: the object region is out of view")));
+        }
+        k += 1;
+    }
+    Err(Error::bad_file(path, format!("frame {index} out of range: the recording has {k} frames")))
+}
+
 /// Undistort one frame of a recording to a linear camera (`aim capture undistort`).
 /// Returns the RGBA image (alpha 0 where the fisheye does not see) and the linear camera.
 pub fn undistort_frame(

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use aim_capture::detect::ObjectRegion;
-use aim_capture::recording::{inspect, undistort_frame, DetectorKind, RecordingOptions};
+use aim_capture::recording::{cropped_frame, inspect, undistort_frame, DetectorKind, RecordingOptions};
 use aim_capture::undistort::UndistortConfig;
 use anyhow::Context;
 
@@ -44,6 +44,20 @@ pub enum Capture {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Cut one frame to the object region as `aim run` trains on it (undistorted,
+    /// posed, square around the region; alpha 0 where rays miss the region).
+    Crop {
+        recording: PathBuf,
+        #[arg(long, default_value_t = 0)]
+        frame: usize,
+        /// Output size in pixels (square).
+        #[arg(long, default_value_t = 256)]
+        crop_size: u32,
+        #[command(flatten)]
+        common: Common,
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 #[derive(clap::Args)]
@@ -63,19 +77,33 @@ pub struct Common {
     /// auto | mps | skin | none | HAND_IN_S,HAND_OUT_S
     #[arg(long, default_value = "auto")]
     detector: String,
-    /// Output size (square) and focal length of the undistorted frames used for detection.
-    #[arg(long, default_value_t = 352)]
-    size: u32,
-    #[arg(long, default_value_t = 150.0)]
-    focal: f64,
+    /// Output size (square) of the undistorted frames (default: 352 to inspect,
+    /// 704 to train on).
+    #[arg(long)]
+    size: Option<u32>,
+    /// Focal length of the undistorted frames in their pixels (default: 150 to
+    /// inspect, 300 to train on: the same field of view).
+    #[arg(long)]
+    focal: Option<f64>,
 }
 
+/// A recording's frames undistorted for training, before the object crop: the
+/// Aria RGB camera's full field at about its native sampling.
+pub const TRAIN_UNDISTORT: UndistortConfig = UndistortConfig { width: 704, height: 704, focal: 300.0, upright: false };
+
+/// Undistorted frames for the motion-window detection alone: small is enough.
+pub const INSPECT_UNDISTORT: UndistortConfig =
+    UndistortConfig { width: 352, height: 352, focal: 150.0, upright: false };
+
 impl Common {
-    fn options(&self) -> anyhow::Result<RecordingOptions> {
+    /// The recording's options, undistorting to `default` where no size or focal is given.
+    pub fn options(&self, default: UndistortConfig) -> anyhow::Result<RecordingOptions> {
         let detector: DetectorKind = self.detector.parse().map_err(anyhow::Error::msg)?;
         let region = self.region.as_ref().map(|r| ObjectRegion { min: [r[0], r[1], r[2]], max: [r[3], r[4], r[5]] });
+        let size = self.size.unwrap_or(default.width);
+        let focal = self.focal.unwrap_or(default.focal);
         Ok(RecordingOptions {
-            undistort: UndistortConfig { width: self.size, height: self.size, focal: self.focal, upright: false },
+            undistort: UndistortConfig { width: size, height: size, focal, upright: false },
             trajectory: self.trajectory.clone(),
             hands: self.hands.clone(),
             online_calibration: self.online_calibration.clone(),
@@ -89,7 +117,7 @@ impl Common {
 pub fn run(c: Capture) -> anyhow::Result<()> {
     match c {
         Capture::Inspect { recording, json, common } => {
-            let report = inspect(&recording, &common.options()?)?;
+            let report = inspect(&recording, &common.options(INSPECT_UNDISTORT)?)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&report)?);
                 return Ok(());
@@ -136,6 +164,28 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
                 report.phase_counts[2],
                 report.stats.corrupt,
                 report.stats.unposed
+            );
+        }
+        Capture::Crop { recording, frame, crop_size, common, out } => {
+            let opts = common.options(TRAIN_UNDISTORT)?;
+            let f = cropped_frame(&recording, frame, &opts, crop_size, aim_capture::crop::DEFAULT_MARGIN)?;
+            let mut bytes = Vec::new();
+            image::DynamicImage::ImageRgba8((*f.image).clone())
+                .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+                .context("encoding PNG")?;
+            aim_capture::io::write_atomic(&out, &bytes)?;
+            let k = f.intrinsics;
+            println!(
+                "wrote {} ({} x {}, f = ({:.1}, {:.1}), c = ({:.1}, {:.1}), {:?} at {:.3} s)",
+                out.display(),
+                k.width,
+                k.height,
+                k.fx,
+                k.fy,
+                k.cx,
+                k.cy,
+                f.phase,
+                f.timestamp_s
             );
         }
         Capture::Undistort { recording, frame, width, height, focal, upright, vignetting, alpha, out } => {

@@ -53,8 +53,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let Some(layout) = dataset_layout(&args.input) else {
         bail!(
             "{}: not a dataset (AiM layout, nerfstudio or COLMAP). Raw recordings (VRS, video, frame folders) are not \
-             trained on yet: their frames show the whole room, and the object crop and hand mask they need are not \
-             built (docs/session.md)",
+             trained on yet: cut to the object region (`aim capture crop`), their frames still show the room behind \
+             the object, which stage I learns as walls of floaters around it that hide the moving part \
+             (docs/session.md)",
             args.input.display()
         );
     };
