@@ -58,6 +58,7 @@ fn check_recording_files(dir: &Path, s: &RecordingSummary) {
         "mps/slam/closed_loop_trajectory.csv",
         "mps/hand_tracking/wrist_and_palm_poses.csv",
         "object_region.json",
+        "mps/slam/semidense_points.csv.gz",
         "gt/joints.json",
         "gt/window.json",
     ] {
@@ -65,6 +66,27 @@ fn check_recording_files(dir: &Path, s: &RecordingSummary) {
     }
     assert_eq!(s.frames, 55);
     assert_eq!((s.hand_in_frame, s.hand_out_frame), (20, 40));
+    check_semidense_points(dir);
+}
+
+/// The semidense points lie on what the scan saw: the object at rest (inside its
+/// region) or the floor, to within their stated uncertainty, and both are there.
+fn check_semidense_points(dir: &Path) {
+    let path = dir.join("mps/slam/semidense_points.csv.gz");
+    let pts = aim_capture::mps::SemidensePoints::load(&path).unwrap();
+    let region: aim_capture::detect::ObjectRegion =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("object_region.json")).unwrap()).unwrap();
+    let (mut on_object, mut on_floor) = (0, 0);
+    for (p, &std) in pts.points.iter().zip(&pts.dist_std) {
+        let slack = 4.0 * std + 1e-3;
+        if (p.z - region.min[2]).abs() <= slack {
+            on_floor += 1;
+        } else {
+            assert!(region.distance(*p) <= slack, "{p} ({std}) is neither on the floor nor in the object's region");
+            on_object += 1;
+        }
+    }
+    assert!(on_object > 200 && on_floor > 1000, "{on_object} points on the object, {on_floor} on the floor");
 }
 
 #[test]

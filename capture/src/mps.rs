@@ -1,8 +1,9 @@
 //! Project Aria MPS outputs: `closed_loop_trajectory.csv` (T_world_device, quaternion
 //! stored x,y,z,w, timestamps in microseconds on the device clock) and hand tracking
 //! (`wrist_and_palm_poses.csv` v1/v2, `hand_tracking_results*.csv`; a confidence of -1
-//! means the hand is missing). Columns are found by header name, so the v1 and v2
-//! layouts and added columns all parse.
+//! means the hand is missing) and the semidense point cloud (`semidense_points.csv.gz`:
+//! world points with their distance uncertainty). Columns are found by header name,
+//! so the v1 and v2 layouts and added columns all parse.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -40,6 +41,52 @@ fn parse_csv(path: &Path, text: &str) -> Result<Csv> {
 impl Csv {
     fn col(&self, path: &Path, name: &str) -> Result<usize> {
         self.cols.get(name).copied().ok_or_else(|| Error::bad_file(path, format!("CSV has no column {name:?}")))
+    }
+}
+
+/// MPS semidense points: the SLAM's 3-D points in the world frame.
+#[derive(Clone, Debug, Default)]
+pub struct SemidensePoints {
+    pub points: Vec<DVec3>,
+    /// Standard deviation of each point's distance (metres).
+    pub dist_std: Vec<f64>,
+}
+
+impl SemidensePoints {
+    /// Parse semidense_points.csv (columns px_world, py_world, pz_world, dist_std).
+    pub fn parse(path: &Path, text: &str) -> Result<Self> {
+        let csv = parse_csv(path, text)?;
+        let c: Vec<usize> =
+            ["px_world", "py_world", "pz_world", "dist_std"].iter().map(|n| csv.col(path, n)).collect::<Result<_>>()?;
+        let mut out = SemidensePoints::default();
+        for (i, r) in csv.rows.iter().enumerate() {
+            let v: Vec<f64> = c.iter().map(|&k| r[k]).collect();
+            if v.iter().any(|x| !x.is_finite()) || v[3] < 0.0 {
+                return Err(Error::bad_file(path, format!("row {}: invalid point", i + 2)));
+            }
+            out.points.push(DVec3::new(v[0], v[1], v[2]));
+            out.dist_std.push(v[3]);
+        }
+        Ok(out)
+    }
+
+    /// Read semidense_points.csv or its gzip form (.gz), as MPS writes it.
+    pub fn load(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        let text = if path.extension().is_some_and(|e| e == "gz") {
+            let mut text = String::new();
+            std::io::Read::read_to_string(&mut flate2::read::GzDecoder::new(&bytes[..]), &mut text)
+                .map_err(|e| Error::bad_file(path, format!("gzip: {e}")))?;
+            text
+        } else {
+            String::from_utf8(bytes).map_err(|e| Error::bad_file(path, format!("not text: {e}")))?
+        };
+        Self::parse(path, &text)
+    }
+
+    /// The points whose distance is known to within `max_dist_std` metres.
+    pub fn confident(&self, max_dist_std: f64) -> impl Iterator<Item = DVec3> + '_ {
+        self.points.iter().zip(&self.dist_std).filter(move |(_, &s)| s <= max_dist_std).map(|(p, _)| *p)
     }
 }
 
@@ -243,6 +290,35 @@ mod tests {
         assert!((angle - std::f64::consts::FRAC_PI_4).abs() < 1e-9, "{angle}");
         assert!(t.interpolate(3_000_000, 0).is_none());
         assert!(t.interpolate(2_000_500, 1000).is_some());
+    }
+
+    #[test]
+    fn semidense_points_read_plain_and_gzipped_and_filter_by_uncertainty() {
+        let text = "uid,graph_uid,px_world,py_world,pz_world,inv_dist_std,dist_std\n\
+                    0,g,1.5,-2,0.25,0.001,0.004\n\
+                    1,g,0,0,3,0.01,0.2\n";
+        let dir = std::env::temp_dir().join(format!("aim-semidense-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let plain = dir.join("semidense_points.csv");
+        std::fs::write(&plain, text).unwrap();
+        let gz = dir.join("semidense_points.csv.gz");
+        let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        std::io::Write::write_all(&mut enc, text.as_bytes()).unwrap();
+        std::fs::write(&gz, enc.finish().unwrap()).unwrap();
+        for path in [&plain, &gz] {
+            let pts = SemidensePoints::load(path).unwrap();
+            assert_eq!(pts.points, vec![DVec3::new(1.5, -2.0, 0.25), DVec3::new(0.0, 0.0, 3.0)]);
+            assert_eq!(pts.dist_std, vec![0.004, 0.2]);
+            assert_eq!(pts.confident(0.05).collect::<Vec<_>>(), vec![DVec3::new(1.5, -2.0, 0.25)]);
+        }
+        // A row with a missing coordinate, or a file that is not gzip, names the file.
+        std::fs::write(&plain, "uid,px_world,py_world,pz_world,dist_std\n0,1,,2,0.1\n").unwrap();
+        let e = SemidensePoints::load(&plain).unwrap_err().to_string();
+        assert!(e.contains("semidense_points.csv") && e.contains("row 2"), "{e}");
+        std::fs::write(&gz, text).unwrap();
+        let e = SemidensePoints::load(&gz).unwrap_err().to_string();
+        assert!(e.contains("semidense_points.csv.gz") && e.contains("gzip"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

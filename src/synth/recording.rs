@@ -356,6 +356,71 @@ fn render_fisheye(
     image::RgbImage::from_raw(w, h, buf).unwrap_or_default()
 }
 
+/// Points on what the scan sees (the object at rest and the floor), as MPS's
+/// semidense_points.csv.gz holds them: each the surface along a random ray of a
+/// scan frame, displaced along the ray by noise of `SEMIDENSE_DIST_STD` of its
+/// distance (the SLAM's depth uncertainty grows with distance), with that
+/// standard deviation written beside it.
+#[allow(clippy::too_many_arguments)]
+fn write_semidense_points(
+    obj: &ArticulatedObject,
+    cam: &CameraCalibration,
+    target: Vec3,
+    distance: f32,
+    total: f64,
+    cfg: &RecordingConfig,
+    floor_z: f32,
+    dir: &Path,
+) -> Result<()> {
+    use rand::{Rng, SeedableRng};
+    let scene = obj.posed(0.0);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(SEMIDENSE_SEED);
+    let mut csv = String::from("uid,graph_uid,px_world,py_world,pz_world,inv_dist_std,dist_std\n");
+    let frames = (cfg.scan_s * cfg.fps).floor() as usize;
+    let mut uid = 0u64;
+    for k in 0..frames {
+        let (t_wc, _) = poses(obj, target, distance, k as f64 / cfg.fps, total);
+        let (rot, origin) = (t_wc.rotation.as_quat(), t_wc.translation.as_vec3());
+        for _ in 0..SEMIDENSE_RAYS_PER_FRAME {
+            let pixel = DVec2::new(rng.random_range(0.0..cam.width as f64), rng.random_range(0.0..cam.height as f64));
+            let Some(ray_cam) = cam.model.unproject(pixel) else { continue };
+            let dir = (rot * ray_cam.as_vec3()).normalize();
+            let depth = match scene.intersect(&Ray::new(origin, dir), f32::INFINITY) {
+                Some(hit) => hit.t,
+                None if dir.z < -1e-3 => (floor_z - origin.z) / dir.z,
+                None => continue,
+            };
+            if !(depth > 0.0 && depth < SEMIDENSE_MAX_DISTANCE) {
+                continue;
+            }
+            let std = SEMIDENSE_DIST_STD * depth;
+            let noise: f32 = rng.sample::<f32, _>(rand_distr::StandardNormal) * std;
+            let p = origin + dir * (depth + noise);
+            csv.push_str(&format!(
+                "{uid},0,{:.6},{:.6},{:.6},{:.6},{:.6}\n",
+                p.x,
+                p.y,
+                p.z,
+                1.0 / (depth * depth) * std,
+                std
+            ));
+            uid += 1;
+        }
+    }
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    std::io::Write::write_all(&mut gz, csv.as_bytes()).map_err(|e| Error::Other(format!("gzip: {e}")))?;
+    let bytes = gz.finish().map_err(|e| Error::Other(format!("gzip: {e}")))?;
+    write_atomic(&dir.join("semidense_points.csv.gz"), &bytes)
+}
+
+/// Rays cast per scan frame for the semidense points.
+const SEMIDENSE_RAYS_PER_FRAME: usize = 400;
+/// Depth noise of a semidense point, relative to its distance.
+const SEMIDENSE_DIST_STD: f32 = 0.004;
+/// Farther surfaces give no point (SLAM tracks little beyond a room's size).
+const SEMIDENSE_MAX_DISTANCE: f32 = 6.0;
+const SEMIDENSE_SEED: u64 = 17;
+
 fn se3_row(t_us: i64, p: &Se3) -> String {
     let (t, q) = (p.translation, p.rotation);
     let mut s = format!(
@@ -471,6 +536,8 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
         }
     }
     write_atomic(&out.join("mps/hand_tracking/wrist_and_palm_poses.csv"), ht.as_bytes())?;
+
+    write_semidense_points(obj, &cam, target, distance, total, cfg, floor_z, &out.join("mps/slam"))?;
 
     let region_json = serde_json::json!({ "min": region.min.to_array(), "max": region.max.to_array() });
     write_atomic(&out.join("object_region.json"), &serde_json::to_vec_pretty(&region_json).unwrap_or_default())?;
