@@ -83,7 +83,7 @@ pub struct StageTimes {
 /// Time each rasterizer stage separately (median of `repeats`).
 fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32], repeats: usize) -> StageTimes {
     use crate::render::project::{project_backward_all, project_one, ProjectionCamera};
-    use crate::render::raster::{bin_tiles, rasterize, rasterize_backward};
+    use crate::render::raster::{bin_tiles, rasterize, rasterize_backward, Background};
     use rayon::prelude::*;
     let pc = ProjectionCamera::new(cam);
     let (w, h) = (cam.width(), cam.height());
@@ -96,10 +96,10 @@ fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32
         let bins = bin_tiles(&proj, w, h);
         t[1].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
-        let out = rasterize(&bins, w, h, opts.background);
+        let out = rasterize(&bins, w, h, Background::Uniform(opts.background));
         t[2].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
-        let (pg, _) = rasterize_backward(&bins, w, h, opts.background, &out, grad, None, None);
+        let (pg, _) = rasterize_backward(&bins, w, h, Background::Uniform(opts.background), &out, grad, None, None);
         t[3].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
         let raw = project_backward_all(gs, &proj, &pc, gs.sh_degree, &pg);
@@ -129,7 +129,7 @@ pub fn render_bench(sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<Rend
 
 /// Time forward and forward+backward of one scene from one camera (medians).
 pub fn time_render(gs: &GaussianSet, cam: &Camera, repeats: usize) -> RenderBenchRow {
-    let opts = RenderOptions { background: Vec3::splat(0.2), sh_degree: None };
+    let opts = RenderOptions::uniform(Vec3::splat(0.2));
     let warm = render(gs, cam, &opts);
     let grad: Vec<f32> = (0..warm.image.color.len()).map(|i| ((i % 7) as f32 - 3.0) * 1e-3).collect();
     let mut fwd = Vec::new();

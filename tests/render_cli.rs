@@ -44,7 +44,7 @@ fn render_command_writes_the_library_render() {
     let o = aim_render(&ply, &cam_path, &out, &["--background", "0.2,0.4,0.6"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let img = image::open(&out).expect("png").into_rgb8();
-    let expected = render(&gs, &cam, &RenderOptions { background: glam::Vec3::new(0.2, 0.4, 0.6), sh_degree: None });
+    let expected = render(&gs, &cam, &RenderOptions::uniform(glam::Vec3::new(0.2, 0.4, 0.6)));
     assert_eq!(img, expected.to_rgb8());
     // The camera file round-trips through the loader.
     assert_eq!(Camera::load_json(&cam_path).expect("loads"), cam);

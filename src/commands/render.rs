@@ -26,7 +26,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let gs = aim::splat::ply::read_ply(&args.splats)?;
     let camera = Camera::load_json(&args.camera)?;
     let t = std::time::Instant::now();
-    let r = render(&gs, &camera, &RenderOptions { background: args.background, sh_degree: None });
+    let r = render(&gs, &camera, &RenderOptions::uniform(args.background));
     tracing::info!(
         gaussians = gs.len(),
         visible = r.visible_count(),

@@ -46,7 +46,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let twin = Twin::open(&args.run)?;
     let parts = twin.part_gaussians()?;
     let camera = Camera::load_json(&args.camera)?;
-    let options = RenderOptions { background: args.background, sh_degree: None };
+    let options = RenderOptions::uniform(args.background);
     let Some(frames) = args.turntable else {
         let gs = twin.gaussians_at(&parts, &args.states)?;
         let r = render(&gs, &camera, &options);

@@ -225,7 +225,7 @@ pub fn fuse_gaussians(gs: &GaussianSet, object_size: f32, cfg: &TsdfConfig) -> R
     voxel = voxel.max((hi - lo).max_element() / cfg.max_voxels_per_axis as f32);
     let dims = ((hi - lo) / voxel).ceil().as_uvec3().max(glam::UVec3::ONE).to_array().map(|d| d as usize);
 
-    let options = RenderOptions { background: Vec3::ZERO, sh_degree: Some(0) };
+    let options = RenderOptions { background: Vec3::ZERO, sh_degree: Some(0), background_image: None };
     let views: Vec<DepthView> = cameras_around(lo, hi, voxel, cfg)
         .into_iter()
         .map(|camera| {

@@ -7,6 +7,8 @@
 //! alpha = min(0.99, opacity * exp(-power)), skip alpha < 1/255, stop when
 //! transmittance would fall below 1e-4, 0.3 px^2 covariance dilation.
 
+use std::sync::Arc;
+
 use glam::Vec3;
 use rayon::prelude::*;
 
@@ -21,16 +23,26 @@ pub mod sh;
 use project::ProjectionCamera;
 
 /// What to render.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct RenderOptions {
     pub background: Vec3,
     /// SH degree used for colour (at most the set's stored degree); None = all stored.
     pub sh_degree: Option<u32>,
+    /// A background per pixel of the whole image (row-major RGB) instead of
+    /// `background`: a fixed scene behind the Gaussians.
+    pub background_image: Option<Arc<[f32]>>,
+}
+
+impl RenderOptions {
+    /// One background colour, all stored SH degrees.
+    pub fn uniform(background: Vec3) -> Self {
+        Self { background, sh_degree: None, background_image: None }
+    }
 }
 
 impl Default for RenderOptions {
     fn default() -> Self {
-        Self { background: Vec3::ZERO, sh_degree: None }
+        Self::uniform(Vec3::ZERO)
     }
 }
 
@@ -43,6 +55,8 @@ pub struct Render {
     /// The projection the pixels were rendered with (the backward pass reuses it).
     pub projection: ProjectionCamera,
     pub options: RenderOptions,
+    /// The background image's pixels of this render (its region), when it has one.
+    pub background_pixels: Option<Vec<f32>>,
     pub sh_degree: u32,
     /// Row-major RGB (background included), alpha, accumulated depth (see [`raster::RasterOutput`]).
     pub image: raster::RasterOutput,
@@ -108,13 +122,38 @@ pub fn render_region(gs: &GaussianSet, camera: &Camera, region: [u32; 4], option
         (0..gs.len()).into_par_iter().map(|i| project::project_one(gs, i, &projection, deg)).collect();
     let (w, h) = (x1 - x0, y1 - y0);
     let bins = raster::bin_tiles(&projected, w, h);
-    let image = raster::rasterize(&bins, w, h, options.background);
+    let background_pixels = options.background_image.as_ref().map(|img| {
+        let full = camera.width() as usize;
+        assert_eq!(img.len(), 3 * full * camera.height() as usize, "background image must match the camera");
+        (y0 as usize..y1 as usize)
+            .flat_map(|y| img[3 * (y * full + x0 as usize)..3 * (y * full + x1 as usize)].iter().copied())
+            .collect::<Vec<f32>>()
+    });
+    let image = raster::rasterize(&bins, w, h, background_of(options, background_pixels.as_deref()));
     let mut camera = *camera;
     camera.intrinsics.width = w;
     camera.intrinsics.height = h;
     camera.intrinsics.cx -= x0 as f32;
     camera.intrinsics.cy -= y0 as f32;
-    Render { width: w, height: h, camera, projection, options: *options, sh_degree: deg, image, projected, bins }
+    Render {
+        width: w,
+        height: h,
+        camera,
+        projection,
+        options: options.clone(),
+        background_pixels,
+        sh_degree: deg,
+        image,
+        projected,
+        bins,
+    }
+}
+
+fn background_of<'a>(options: &RenderOptions, pixels: Option<&'a [f32]>) -> raster::Background<'a> {
+    match pixels {
+        Some(p) => raster::Background::Image(p),
+        None => raster::Background::Uniform(options.background),
+    }
 }
 
 /// Backward pass: `grad_color` is dL/d(RGB) (row-major, 3 per pixel); optional
@@ -132,7 +171,7 @@ pub fn backward(
         &fwd.bins,
         w,
         h,
-        fwd.options.background,
+        background_of(&fwd.options, fwd.background_pixels.as_deref()),
         &fwd.image,
         grad_color,
         grad_alpha,

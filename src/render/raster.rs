@@ -329,12 +329,41 @@ struct TileResult {
 }
 
 /// Forward compositing over all tiles, with the fastest kernel set this CPU runs.
-pub fn rasterize(bins: &TileBins, width: u32, height: u32, background: Vec3) -> RasterOutput {
+pub fn rasterize(bins: &TileBins, width: u32, height: u32, background: Background) -> RasterOutput {
     rasterize_with(Kernels::active(), bins, width, height, background)
 }
 
+/// What shows where the Gaussians leave the pixel transparent.
+#[derive(Clone, Copy, Debug)]
+pub enum Background<'a> {
+    /// One colour everywhere.
+    Uniform(Vec3),
+    /// A colour per pixel (row-major RGB of the rendered image): a fixed scene
+    /// behind the Gaussians, e.g. the room behind an object.
+    Image(&'a [f32]),
+}
+
+impl Background<'_> {
+    #[inline]
+    fn at(&self, pixel: usize) -> Vec3 {
+        match self {
+            Background::Uniform(c) => *c,
+            Background::Image(img) => Vec3::new(img[3 * pixel], img[3 * pixel + 1], img[3 * pixel + 2]),
+        }
+    }
+}
+
 /// Forward compositing over all tiles with kernel set `kernels`.
-pub fn rasterize_with(kernels: Kernels, bins: &TileBins, width: u32, height: u32, background: Vec3) -> RasterOutput {
+pub fn rasterize_with(
+    kernels: Kernels,
+    bins: &TileBins,
+    width: u32,
+    height: u32,
+    background: Background,
+) -> RasterOutput {
+    if let Background::Image(img) = background {
+        assert_eq!(img.len(), (3 * width * height) as usize, "background image must match the render");
+    }
     let results: Vec<TileResult> = (0..bins.tile_count())
         .into_par_iter()
         .map(|t| {
@@ -359,8 +388,9 @@ pub fn rasterize_with(kernels: Kernels, bins: &TileBins, width: u32, height: u32
                 let l = ((py - r[1]) * TILE + (px - r[0])) as usize;
                 let o = (py * width + px) as usize;
                 let tl = res.t[l].abs();
+                let bg = background.at(o);
                 for c in 0..3 {
-                    out.color[3 * o + c] = res.color[c][l] + background[c] * tl;
+                    out.color[3 * o + c] = res.color[c][l] + bg[c] * tl;
                 }
                 out.alpha[o] = 1.0 - tl;
                 out.depth[o] = res.depth[l];
@@ -452,7 +482,7 @@ pub fn rasterize_backward(
     bins: &TileBins,
     width: u32,
     height: u32,
-    background: Vec3,
+    background: Background,
     fwd: &RasterOutput,
     grad_color: &[f32],
     grad_alpha: Option<&[f32]>,
@@ -468,7 +498,7 @@ pub fn rasterize_backward_with(
     bins: &TileBins,
     width: u32,
     height: u32,
-    background: Vec3,
+    background: Background,
     fwd: &RasterOutput,
     g: &TileGrads,
 ) -> (Vec<ProjectedGrad>, Vec3) {
@@ -520,7 +550,7 @@ struct TileInput<'a> {
     bins: &'a TileBins,
     width: u32,
     height: u32,
-    background: Vec3,
+    background: Background<'a>,
     fwd: &'a RasterOutput,
 }
 
@@ -560,6 +590,7 @@ fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [Proje
             let l = ((py - rect[1]) * TILE + (px - rect[0])) as usize;
             let o = (py * width + px) as usize;
             let tf = fwd.final_t[o];
+            let background = background.at(o);
             t_cur[l] = tf;
             last[l] = fwd.last[o] as f32;
             max_last = max_last.max(fwd.last[o]);

@@ -120,13 +120,13 @@ fn dense_scene() -> (GaussianSet, Camera, Vec3) {
 #[test]
 fn tiled_renderer_matches_per_pixel_reference_with_every_kernel_set() {
     let (gs, cam, bg) = dense_scene();
-    let r = render(&gs, &cam, &RenderOptions { background: bg, sh_degree: None });
+    let r = render(&gs, &cam, &RenderOptions::uniform(bg));
     let (c, a, d) = reference_render(&gs, &cam, bg);
     assert!(r.visible_count() > 500, "scene should be mostly visible, got {}", r.visible_count());
     assert!(a.iter().any(|v| *v > 1.0 - 2.0 * TRANSMITTANCE_MIN), "some pixels should terminate early");
     assert!(a.iter().any(|v| *v < 0.5), "some pixels should be thin");
     for k in Kernels::available() {
-        let img = raster::rasterize_with(k, &r.bins, cam.width(), cam.height(), bg);
+        let img = raster::rasterize_with(k, &r.bins, cam.width(), cam.height(), raster::Background::Uniform(bg));
         let name = k.name();
         assert!(max_abs_diff(&img.color, &c) < 1e-5, "{name}: colour differs by {}", max_abs_diff(&img.color, &c));
         assert!(max_abs_diff(&img.alpha, &a) < 1e-5, "{name}: alpha differs by {}", max_abs_diff(&img.alpha, &a));
@@ -137,13 +137,23 @@ fn tiled_renderer_matches_per_pixel_reference_with_every_kernel_set() {
 #[test]
 fn every_kernel_set_gives_the_portable_gradients() {
     let (gs, cam, bg) = dense_scene();
-    let r = render(&gs, &cam, &RenderOptions { background: bg, sh_degree: None });
+    let r = render(&gs, &cam, &RenderOptions::uniform(bg));
     let n = (cam.width() * cam.height()) as usize;
     let w = weights(n);
     let (w_alpha, w_depth): (Vec<f32>, Vec<f32>) =
         (0..n).map(|i| ((i as f32 * 0.37).sin(), (i as f32 * 0.11).cos())).unzip();
     let grads = raster::TileGrads { color: &w.c, alpha: Some(&w_alpha), depth: Some(&w_depth) };
-    let run = |k| raster::rasterize_backward_with(k, &r.bins, cam.width(), cam.height(), bg, &r.image, &grads);
+    let run = |k| {
+        raster::rasterize_backward_with(
+            k,
+            &r.bins,
+            cam.width(),
+            cam.height(),
+            raster::Background::Uniform(bg),
+            &r.image,
+            &grads,
+        )
+    };
     let portable = Kernels::named("portable").expect("the portable kernels run everywhere");
     let (want, want_bg) = run(portable);
     let flat = |g: &[super::project::ProjectedGrad]| -> Vec<f32> {
@@ -236,8 +246,13 @@ const FD_EPS: f32 = 1e-2;
 /// group's gradient vector must match to 1e-3 relative (in norm) and each
 /// entry to 1e-3 absolute or 1e-2 relative.
 fn check_group(group: ParamGroup, degree: u32) {
+    check_group_with(group, degree, |_| RenderOptions::uniform(Vec3::new(0.3, 0.2, 0.7)));
+}
+
+/// [`check_group`] with the render options `options(camera)` gives.
+fn check_group_with(group: ParamGroup, degree: u32, options: impl Fn(&Camera) -> RenderOptions) {
     let (gs, cam) = smooth_scene(degree);
-    let opts = RenderOptions { background: Vec3::new(0.3, 0.2, 0.7), sh_degree: None };
+    let opts = options(&cam);
     let n = (cam.width() * cam.height()) as usize;
     let w = weights(n);
     let r = render(&gs, &cam, &opts);
@@ -294,19 +309,71 @@ fn gradient_sh_rest_matches_finite_differences() {
     check_group(ParamGroup::ShRest, 3);
 }
 
+/// A background per pixel: a smooth colour ramp across the image.
+fn ramp_background(cam: &Camera) -> RenderOptions {
+    let (w, h) = (cam.width() as usize, cam.height() as usize);
+    let img: Vec<f32> = (0..w * h)
+        .flat_map(|o| {
+            let (x, y) = ((o % w) as f32 / w as f32, (o / w) as f32 / h as f32);
+            [0.2 + 0.6 * x, 0.8 - 0.5 * y, 0.3 + 0.4 * x * y]
+        })
+        .collect();
+    RenderOptions { background_image: Some(img.into()), ..RenderOptions::uniform(Vec3::ZERO) }
+}
+
+#[test]
+fn gradient_means_with_a_background_image_matches_finite_differences() {
+    check_group_with(ParamGroup::Means, 1, ramp_background);
+}
+
+#[test]
+fn gradient_opacity_with_a_background_image_matches_finite_differences() {
+    check_group_with(ParamGroup::OpacityLogits, 1, ramp_background);
+}
+
+/// A background image shows through exactly as much as the Gaussians leave
+/// transparent, and a region of the image sees its own pixels of it.
+#[test]
+fn a_background_image_shows_where_the_gaussians_are_transparent() {
+    let (gs, cam) = smooth_scene(1);
+    let opts = ramp_background(&cam);
+    let plate = opts.background_image.clone().unwrap();
+    let with = render(&gs, &cam, &opts);
+    let without = render(&gs, &cam, &RenderOptions::uniform(Vec3::ZERO));
+    for o in 0..without.image.alpha.len() {
+        let t = 1.0 - without.image.alpha[o];
+        for c in 0..3 {
+            let expected = without.image.color[3 * o + c] + t * plate[3 * o + c];
+            assert!((with.image.color[3 * o + c] - expected).abs() < 1e-6, "pixel {o}");
+        }
+    }
+    assert!(without.image.alpha.iter().any(|&a| a < 0.5), "the scene must leave some background visible");
+    let (w, region) = (cam.width() as usize, [3, 5, 15, 12]);
+    let part = crate::render::render_region(&gs, &cam, region, &opts);
+    for y in 5..12 {
+        for x in 3..15 {
+            let (o, r) = (y * w + x, (y - 5) * 12 + (x - 3));
+            for c in 0..3 {
+                let d = (part.image.color[3 * r + c] - with.image.color[3 * o + c]).abs();
+                assert!(d < 1e-5, "pixel ({x}, {y}): {d}");
+            }
+        }
+    }
+}
+
 #[test]
 fn gradient_background_matches_finite_differences() {
     let (gs, cam) = smooth_scene(1);
     let n = (cam.width() * cam.height()) as usize;
     let w = weights(n);
     let bg = Vec3::new(0.3, 0.2, 0.7);
-    let r = render(&gs, &cam, &RenderOptions { background: bg, sh_degree: None });
+    let r = render(&gs, &cam, &RenderOptions::uniform(bg));
     let g = backward(&gs, &r, &w.c, Some(&w.a), Some(&w.d));
     for c in 0..3 {
         let mut e = Vec3::ZERO;
         e[c] = 1e-3;
-        let lp = loss(&gs, &cam, &RenderOptions { background: bg + e, sh_degree: None }, &w);
-        let lm = loss(&gs, &cam, &RenderOptions { background: bg - e, sh_degree: None }, &w);
+        let lp = loss(&gs, &cam, &RenderOptions::uniform(bg + e), &w);
+        let lm = loss(&gs, &cam, &RenderOptions::uniform(bg - e), &w);
         let fd = (lp - lm) / 2e-3;
         assert!(
             (fd - g.background[c] as f64).abs() < 1e-3 * fd.abs().max(1.0),
@@ -331,7 +398,7 @@ fn mean2d_gradient_norm_is_the_ndc_screen_gradient() {
         // Same tile lists (the perturbation leaves boxes and depths alone), new positions.
         let bins = raster::bin_tiles(proj, width, height);
         assert_eq!(bins.entries, r.bins.entries);
-        let out = raster::rasterize(&bins, width, height, opts.background);
+        let out = raster::rasterize(&bins, width, height, raster::Background::Uniform(opts.background));
         let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| *x as f64 * *y as f64).sum::<f64>();
         dot(&out.color, &w.c) + dot(&out.alpha, &w.a) + dot(&out.depth, &w.d)
     };
@@ -357,7 +424,7 @@ fn colour_only_backward_equals_backward_with_zero_aux_gradients() {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let gs = random_set(&mut rng, 300, 2, 1.0, (-4.0, -2.5), (0.1, 0.95));
     let cam = camera(40, 33);
-    let r = render(&gs, &cam, &RenderOptions { background: Vec3::splat(0.4), sh_degree: None });
+    let r = render(&gs, &cam, &RenderOptions::uniform(Vec3::splat(0.4)));
     let n = (cam.width() * cam.height()) as usize;
     let w = weights(n);
     let zeros = vec![0.0; n];
@@ -371,7 +438,7 @@ fn colour_only_backward_equals_backward_with_zero_aux_gradients() {
 #[test]
 fn a_region_renders_and_differentiates_as_those_pixels_of_the_whole_image() {
     let (gs, cam, bg) = dense_scene();
-    let opts = RenderOptions { background: bg, sh_degree: None };
+    let opts = RenderOptions::uniform(bg);
     let full = render(&gs, &cam, &opts);
     let [x0, y0, x1, y1] = [9u32, 5, 50, 40];
     let part = render_region(&gs, &cam, [x0, y0, x1, y1], &opts);

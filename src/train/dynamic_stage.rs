@@ -602,7 +602,7 @@ impl DualTrainer {
         }
         let mut union = self.static_set.gaussians.clone();
         union.extend_from(&moving);
-        let r = render(&union, &view.camera, &RenderOptions { background: bg, sh_degree: None });
+        let r = render(&union, &view.camera, &RenderOptions::uniform(bg));
         let target = view.target(bg);
         let loss =
             loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, self.config.lambda_dssim);
@@ -768,7 +768,7 @@ impl DualTrainer {
             .iter()
             .map(|v| {
                 let g = self.union_at(v.time.unwrap_or(0.0));
-                let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+                let r = render(&g, &v.camera, &RenderOptions::uniform(bg));
                 psnr(&r.image.color, &v.target(bg))
             })
             .sum();

@@ -56,7 +56,7 @@ impl RevealedContent {
             let mut hidden = vec![true; candidates.len()];
             let mut seen = vec![false; candidates.len()];
             for camera in scan {
-                let r = render(start, camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
+                let r = render(start, camera, &RenderOptions::uniform(Vec3::ZERO));
                 let (w, h) = (r.width as usize, r.height as usize);
                 for (k, p) in candidates.iter().enumerate() {
                     let Some((x, y, z)) = camera.project(*p) else { continue };

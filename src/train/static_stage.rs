@@ -147,7 +147,7 @@ impl GaussianTrainer {
         let c = &self.config;
         let streams = (STREAM_VIEWS, STREAM_BACKGROUND);
         let (view, bg) = pick_view(views, c.seed, self.iteration, c.random_background, c.eval_background, streams);
-        let opts = RenderOptions { background: bg, sh_degree: Some(self.active_sh_degree(it)) };
+        let opts = RenderOptions { background: bg, sh_degree: Some(self.active_sh_degree(it)), background_image: None };
         let r = render(&self.gaussians, &view.camera, &opts);
         let target = view.target(bg);
         let loss =
@@ -199,7 +199,7 @@ pub fn evaluate(gs: &GaussianSet, views: &[TrainView], background: Vec3) -> Vec<
     views
         .iter()
         .map(|v| {
-            let r = render(gs, &v.camera, &RenderOptions { background, sh_degree: None });
+            let r = render(gs, &v.camera, &RenderOptions::uniform(background));
             let target = v.target(background);
             ViewMetrics {
                 name: v.name.clone(),
@@ -289,7 +289,7 @@ fn log_state(viz: &Viz, trainer: &GaussianTrainer, eval: &TrainView) {
     viz.set_iteration(trainer.iteration);
     viz.gaussians("world/gaussians", &trainer.gaussians);
     let bg = Vec3::from(trainer.config.eval_background);
-    let r = render(&trainer.gaussians, &eval.camera, &RenderOptions { background: bg, sh_degree: None });
+    let r = render(&trainer.gaussians, &eval.camera, &RenderOptions::uniform(bg));
     viz.camera("world/eval_camera", &eval.camera);
     viz.image_rgb("world/eval_camera/render", r.width, r.height, &r.image.color);
     viz.image_rgb("eval/target", r.width, r.height, &eval.target(bg));
@@ -380,7 +380,7 @@ pub fn run_static(
     std::fs::create_dir_all(paths.test_dir()).map_err(|e| Error::io(paths.test_dir(), e))?;
     let bg = Vec3::from(config.eval_background);
     for (i, v) in eval_views.iter().enumerate() {
-        let r = render(&trainer.gaussians, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+        let r = render(&trainer.gaussians, &v.camera, &RenderOptions::uniform(bg));
         let mut bytes = Vec::new();
         image::DynamicImage::ImageRgb8(r.to_rgb8())
             .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)

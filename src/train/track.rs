@@ -1179,7 +1179,7 @@ impl NodeTracker {
         views: &[&TrainView],
     ) -> Vec<f32> {
         let last = parts.poses.len() - 1;
-        let options = RenderOptions { background: Vec3::from(self.config.eval_background), sh_degree: None };
+        let options = RenderOptions::uniform(Vec3::from(self.config.eval_background));
         let cap = self.config.track.validation_residual_cap;
         let in_part = |i: usize| i < self.binding.len() && parts.node_part[self.binding[i] as usize] == p + 1;
         let at_pose = |pose: Option<NodePose>| {
@@ -1481,7 +1481,7 @@ impl NodeTracker {
                 let t = v.time.unwrap_or(0.0);
                 let poses = assigned.node_poses(&self.node_centres, &at);
                 let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
-                let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+                let r = render(&g, &v.camera, &RenderOptions::uniform(bg));
                 let sum: f32 = pixel_residuals(&r.image.color, &v.target(bg), cap).into_iter().sum();
                 sum / (r.width * r.height) as f32
             })
@@ -1497,7 +1497,7 @@ impl NodeTracker {
             .iter()
             .map(|v| {
                 let g = self.revealed.with(self.deformed_at(v.time.unwrap_or(0.0)));
-                let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+                let r = render(&g, &v.camera, &RenderOptions::uniform(bg));
                 psnr(&r.image.color, &v.target(bg))
             })
             .sum();
@@ -1638,7 +1638,7 @@ fn region_step(
     depth_weight: f32,
 ) -> RegionStep {
     let (width, height) = (view.camera.width(), view.camera.height());
-    let render = render_region(g, &view.camera, region, &RenderOptions { background: bg, sh_degree: None });
+    let render = render_region(g, &view.camera, region, &RenderOptions::uniform(bg));
     let target = view.target(bg);
     // The whole view (every tracking step) needs no copy.
     let target = if region == [0, 0, width, height] { target } else { crop(&target, width, 3, region) };
@@ -1855,7 +1855,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let poses = poses(&mut rng, tracker.node_centres.len());
         let w: Vec<f32> = (0..3 * 16 * 14).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let opts = RenderOptions { background: Vec3::new(0.2, 0.3, 0.1), sh_degree: None };
+        let opts = RenderOptions::uniform(Vec3::new(0.2, 0.3, 0.1));
         let loss = |p: &[NodePose]| -> f64 {
             let r = render(&tracker.deformed(p, &[0.0; 2]), &cam, &opts);
             r.image.color.iter().zip(&w).map(|(c, w)| f64::from(c * w)).sum()
@@ -2000,7 +2000,7 @@ mod tests {
     /// An end-state (t = 1) view of `set` from `camera`, over black (so the
     /// colour is the premultiplied colour), alpha included.
     fn end_view(set: &GaussianSet, camera: Camera) -> TrainView {
-        let r = render(set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
+        let r = render(set, &camera, &RenderOptions::uniform(Vec3::ZERO));
         TrainView {
             name: String::new(),
             camera,
@@ -2217,7 +2217,7 @@ mod tests {
         let poses = poses(&mut rng, tracker.node_centres.len());
         let gains = [0.2, -0.3];
         let w: Vec<f32> = (0..3 * 16 * 14).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let opts = RenderOptions { background: Vec3::new(0.2, 0.3, 0.1), sh_degree: None };
+        let opts = RenderOptions::uniform(Vec3::new(0.2, 0.3, 0.1));
         let loss = |g: &[f32]| -> f64 {
             let r = render(&tracker.deformed(&poses, g), &cam, &opts);
             r.image.color.iter().zip(&w).map(|(c, w)| f64::from(c * w)).sum()

@@ -118,7 +118,7 @@ impl NodeTracker {
         let n = self.node_centres.len();
         let mut seen: Vec<Vec<f32>> = vec![Vec::new(); n];
         for v in views {
-            let r = render(&g, &v.camera, &RenderOptions { background: bg, sh_degree: None });
+            let r = render(&g, &v.camera, &RenderOptions::uniform(bg));
             let target = v.target(bg);
             let depth = r.expected_depth();
             let w = r.width as usize;
@@ -442,7 +442,7 @@ mod tests {
             .map(|i| {
                 let a = 0.3 + i as f32 * std::f32::consts::TAU / count as f32;
                 let camera = Camera::look_at(k, Vec3::new(1.6 * a.cos(), 1.2, 1.6 * a.sin()), Vec3::ZERO, Vec3::Y);
-                let r: Render = render(set, &camera, &RenderOptions { background: Vec3::ZERO, sh_degree: None });
+                let r: Render = render(set, &camera, &RenderOptions::uniform(Vec3::ZERO));
                 TrainView {
                     name: String::new(),
                     camera,
