@@ -10,6 +10,7 @@ use std::sync::atomic::AtomicBool;
 
 use aim::stream::{run_session, Reference, SessionConfig, SessionControl, SessionOutcome};
 use aim::synth::dataset::{write_dataset, SynthConfig};
+use aim::synth::recording::{write_recording, RecordingConfig};
 use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput};
 use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
 use aim::train::views::load_phase_views;
@@ -137,6 +138,7 @@ fn input_without_an_interaction_is_refused_by_name() {
         camera: None,
         trajectory_path: None,
         hands_path: None,
+        points_path: None,
         region: None,
     };
     let never = AtomicBool::new(false);
@@ -148,13 +150,26 @@ fn input_without_an_interaction_is_refused_by_name() {
     let msg = err.to_string();
     assert!(msg.contains("scan-only") && msg.contains("no interaction"), "{msg}");
 
-    // `aim run` on a raw recording: not trained on yet, said with the input's name.
+    // `aim run` on a recording without what training on it needs: said with the
+    // input's name and what is missing.
     let rec = root.join("recording");
-    std::fs::create_dir_all(rec.join("frames")).expect("dir");
-    let out = aim().arg("run").arg(&rec).arg("--out").arg(root.join("run")).output().expect("runs");
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains(&rec.display().to_string()) && stderr.contains("not a dataset"), "{stderr}");
+    let small =
+        RecordingConfig { resolution: 128, fps: 5.0, scan_s: 1.0, motion_s: 1.0, after_s: 0.6, ..Default::default() };
+    write_recording(&aim::synth::object("fridge").expect("object"), &small, &rec).expect("written");
+    let stderr = |rec: &Path| {
+        let out = aim().arg("run").arg(rec).arg("--out").arg(root.join("run")).output().expect("runs");
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    for (file, needed) in [
+        ("mps/slam/semidense_points.csv.gz", "semidense"),
+        ("object_region.json", "region"),
+        ("mps/slam/closed_loop_trajectory.csv", "camera poses"),
+    ] {
+        std::fs::remove_file(rec.join(file)).expect("removed");
+        let e = stderr(&rec);
+        assert!(e.contains(&rec.display().to_string()) && e.contains(needed), "{file}: {e}");
+    }
     let missing = aim().arg("run").arg(root.join("nothing")).arg("--out").arg(root.join("run")).output().expect("runs");
     assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("no such file"));
@@ -196,4 +211,42 @@ fn aim_run_logs_the_session_to_rerun() {
     ] {
         assert!(listing.contains(entity), "{entity} missing from the recording");
     }
+}
+
+/// `aim run` on a recording (the synthetic Aria-like one): the frames are cut to
+/// the object region, stage I learns the object and the room around it from the
+/// SLAM points, the object is what lies in the region, and stages II and III run
+/// on it with the room as each view's backdrop.
+#[test]
+fn aim_run_trains_on_a_recording_with_the_room_kept_out_of_the_object() {
+    let root = tmp("recording-run");
+    let rec = root.join("recording");
+    let small =
+        RecordingConfig { resolution: 256, fps: 6.0, scan_s: 1.5, motion_s: 1.0, after_s: 1.0, ..Default::default() };
+    write_recording(&aim::synth::object("fridge").expect("object"), &small, &rec).expect("written");
+    let run = root.join("run");
+    let out = aim()
+        .arg("run")
+        .arg(&rec)
+        .arg("--out")
+        .arg(&run)
+        .args(["--static-iterations", "200", "--dynamic-iterations", "60"])
+        .output()
+        .expect("runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&read(&run.join("session.json"))).expect("json");
+    for phase in ["scan", "motion", "after"] {
+        assert!(report["frames"][phase].as_u64().expect("count") > 0, "no {phase} frames: {report}");
+    }
+    assert!(report["stage_one"]["mean_psnr"].as_f64().expect("psnr") > 20.0, "{}", report["stage_one"]);
+    let region: aim_capture::detect::ObjectRegion =
+        serde_json::from_slice(&read(&rec.join("object_region.json"))).expect("region");
+    let all = aim::splat::ply::read_ply(&run.join("static/static.ply")).expect("stage I");
+    let object = aim::splat::ply::read_ply(&run.join("static/object.ply")).expect("the object");
+    let inside = |i: usize, set: &aim::splat::GaussianSet| region.distance(set.mean(i).as_dvec3()) == 0.0;
+    assert!((0..object.len()).all(|i| inside(i, &object)), "an object Gaussian outside the region");
+    let room = (0..all.len()).filter(|&i| !inside(i, &all)).count();
+    assert_eq!(object.len() + room, all.len());
+    assert!(object.len() > 100 && room > 100, "{} object and {room} room Gaussians", object.len());
+    assert!(run.join("dynamic/twin/articulation.json").is_file());
 }

@@ -24,6 +24,9 @@ pub struct ObjectCrop {
     pub size: u32,
     /// Extra border around the region's rectangle, as a fraction of its larger side.
     pub margin: f32,
+    /// Pixels whose rays miss the region become background (alpha 0); otherwise
+    /// every pixel keeps what it shows (the room is learnt around the object).
+    pub mask_outside: bool,
 }
 
 impl ObjectCrop {
@@ -62,7 +65,7 @@ impl ObjectCrop {
                     let u = i as f32 + (sx as f32 + 0.5) / taps as f32;
                     let v = j as f32 + (sy as f32 + 0.5) / taps as f32;
                     let dir = ray_direction(&c2w, &cropped, u, v);
-                    if !ray_hits_box(eye, dir, lo, hi) {
+                    if self.mask_outside && !ray_hits_box(eye, dir, lo, hi) {
                         continue;
                     }
                     let s = bilinear(src, origin[0] + u / scale, origin[1] + v / scale);
@@ -160,7 +163,7 @@ mod tests {
         let img = image::RgbaImage::from_fn(200, 100, |x, y| image::Rgba([x as u8, y as u8, 7, 255]));
         let frame = frame_of(img);
         let region = ObjectRegion { min: [-0.5, -0.5, -0.5], max: [0.5, 0.5, 0.5] };
-        let crop = ObjectCrop { region, size: 64, margin: 0.25 }.apply(&frame).unwrap();
+        let crop = ObjectCrop { region, size: 64, margin: 0.25, mask_outside: true }.apply(&frame).unwrap();
         let k = crop.intrinsics;
         assert_eq!((k.width, k.height, crop.image.width()), (64, 64, 64));
         // The box's near face spans 0.5 / 2.5 * 100 = 20 px each side of the centre.
@@ -189,6 +192,6 @@ mod tests {
     fn a_region_out_of_view_gives_no_crop() {
         let frame = frame_of(image::RgbaImage::new(200, 100));
         let behind = ObjectRegion { min: [-0.5, -0.5, -6.0], max: [0.5, 0.5, -5.0] };
-        assert!(ObjectCrop { region: behind, size: 32, margin: 0.1 }.apply(&frame).is_none());
+        assert!(ObjectCrop { region: behind, size: 32, margin: 0.1, mask_outside: true }.apply(&frame).is_none());
     }
 }

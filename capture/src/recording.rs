@@ -5,7 +5,8 @@
 //! Files looked for beside a recording (a `.vrs` file's folder, or the recording folder):
 //! `mps/slam/closed_loop_trajectory.csv` or `closed_loop_trajectory.csv`;
 //! `mps/hand_tracking/wrist_and_palm_poses.csv` or `wrist_and_palm_poses.csv`;
-//! `object_region.json` (`{"min": [x, y, z], "max": [x, y, z]}`, world frame).
+//! `object_region.json` (`{"min": [x, y, z], "max": [x, y, z]}`, world frame);
+//! `mps/slam/semidense_points.csv.gz` or `semidense_points.csv.gz`.
 
 use std::path::{Path, PathBuf};
 
@@ -62,6 +63,8 @@ pub struct RecordingOptions {
     pub undistort: UndistortConfig,
     pub trajectory: Option<PathBuf>,
     pub hands: Option<PathBuf>,
+    /// MPS semidense_points.csv(.gz).
+    pub points: Option<PathBuf>,
     pub region: Option<ObjectRegion>,
     pub vignetting: Option<PathBuf>,
     /// MPS online_calibration.jsonl: use the camera-rgb of its first line (the start of
@@ -80,6 +83,7 @@ impl Default for RecordingOptions {
             undistort: UndistortConfig::aria_default(),
             trajectory: None,
             hands: None,
+            points: None,
             region: None,
             vignetting: None,
             online_calibration: None,
@@ -102,6 +106,8 @@ pub struct Opened {
     pub camera: Option<CameraCalibration>,
     pub trajectory_path: Option<PathBuf>,
     pub hands_path: Option<PathBuf>,
+    /// MPS semidense points found beside the recording.
+    pub points_path: Option<PathBuf>,
     pub region: Option<ObjectRegion>,
 }
 
@@ -146,6 +152,21 @@ pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
             })
             .flatten()
     });
+    let points_path = opts.points.clone().or_else(|| {
+        opts.discover
+            .then(|| {
+                first_existing(
+                    &base,
+                    &[
+                        "mps/slam/semidense_points.csv.gz",
+                        "semidense_points.csv.gz",
+                        "mps/slam/semidense_points.csv",
+                        "semidense_points.csv",
+                    ],
+                )
+            })
+            .flatten()
+    });
     let region = match opts.region {
         Some(r) => Some(r),
         None if opts.discover => match first_existing(&base, &["object_region.json"]) {
@@ -183,7 +204,16 @@ pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
         (DetectorKind::Explicit(a, b), _) => Box::new(ExplicitEvidence { hand_in_s: a, hand_out_s: b }),
         (DetectorKind::None, _) => Box::new(NoEvidence),
     };
-    Ok(Opened { source, processor, tagger: PhaseTagger::new(evidence), camera, trajectory_path, hands_path, region })
+    Ok(Opened {
+        source,
+        processor,
+        tagger: PhaseTagger::new(evidence),
+        camera,
+        trajectory_path,
+        hands_path,
+        points_path,
+        region,
+    })
 }
 
 /// The RGB camera of the first line of an online_calibration.jsonl, at the resolution of
@@ -346,7 +376,7 @@ pub fn cropped_frame(path: &Path, index: usize, opts: &RecordingOptions, size: u
                     format!("frame {index}: no camera pose (MPS trajectory) at its time"),
                 ));
             }
-            let crop = crate::crop::ObjectCrop { region, size, margin };
+            let crop = crate::crop::ObjectCrop { region, size, margin, mask_outside: true };
             return crop
                 .apply(&p.frame)
                 .ok_or_else(|| Error::bad_file(path, format!("frame {index}: the object region is out of view")));

@@ -68,6 +68,9 @@ pub struct Common {
     /// MPS wrist_and_palm_poses.csv or hand_tracking_results.csv (default: beside the recording).
     #[arg(long)]
     hands: Option<PathBuf>,
+    /// MPS semidense_points.csv.gz (default: beside the recording).
+    #[arg(long)]
+    points: Option<PathBuf>,
     /// Object region in world coordinates: x0,y0,z0,x1,y1,z1 (default: object_region.json beside the recording).
     #[arg(long, value_delimiter = ',', num_args = 6)]
     region: Option<Vec<f64>>,
@@ -106,6 +109,7 @@ impl Common {
             undistort: UndistortConfig { width: size, height: size, focal, upright: false },
             trajectory: self.trajectory.clone(),
             hands: self.hands.clone(),
+            points: self.points.clone(),
             online_calibration: self.online_calibration.clone(),
             region,
             detector,

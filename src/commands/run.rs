@@ -8,10 +8,11 @@ use std::path::{Path, PathBuf};
 use anyhow::bail;
 
 use aim::eval::twin::has_ground_truth;
-use aim::stream::{run_session, Reference, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
+use aim::stream::{run_session, Reference, RoomSetup, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
 use aim::train::config::{StageConfig, StaticConfig};
-use aim::train::dynamic_stage::DynamicConfig;
-use aim_capture::recording::{open_recording, RecordingOptions};
+use aim::train::dynamic_stage::{DynamicConfig, StageTwoMethod};
+use aim_capture::mps::SemidensePoints;
+use aim_capture::recording::{open_recording, Opened, RecordingOptions};
 use aim_capture::source::{dataset_layout, DatasetLayout};
 use aim_capture::Phase;
 
@@ -42,30 +43,40 @@ pub struct Args {
     pub dynamic_iterations: Option<u32>,
     #[command(flatten)]
     pub rerun: super::train_static::RerunArgs,
+    /// A recording's files and detector (ignored for datasets).
+    #[command(flatten)]
+    pub recording: super::capture::Common,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     if !args.input.exists() {
         bail!("{}: no such file or folder", args.input.display());
     }
-    // Datasets hold posed frames of the object; a raw recording's frames show the
-    // whole room, which the trainers do not model yet (docs/session.md).
-    let Some(layout) = dataset_layout(&args.input) else {
-        bail!(
-            "{}: not a dataset (AiM layout, nerfstudio or COLMAP). Raw recordings (VRS, video, frame folders) are not \
-             trained on yet: cut to the object region (`aim capture crop`), their frames still show the room behind \
-             the object, which stage I learns as walls of floaters around it that hide the moving part \
-             (docs/session.md)",
-            args.input.display()
-        );
-    };
     let mut cfg = SessionConfig::cpu(0);
     cfg.stage_one =
         StaticConfig::resolve(args.static_config.as_deref(), &args.preset, args.seed, args.static_iterations)?;
     cfg.stage_two =
         DynamicConfig::resolve(args.dynamic_config.as_deref(), &args.preset, args.seed, args.dynamic_iterations)?;
-    let reference = if layout == DatasetLayout::Aim { reference(&args.input, &cfg)? } else { Reference::default() };
-    let opened = open_recording(&args.input, &RecordingOptions::default())?;
+    let (opened, reference) = match dataset_layout(&args.input) {
+        Some(layout) => {
+            let reference =
+                if layout == DatasetLayout::Aim { reference(&args.input, &cfg)? } else { Reference::default() };
+            (open_recording(&args.input, &RecordingOptions::default())?, reference)
+        }
+        None => {
+            let opened = open_recording(&args.input, &args.recording.options(super::capture::TRAIN_UNDISTORT)?)?;
+            if cfg.stage_two.method != StageTwoMethod::NodeTrack {
+                bail!(
+                    "{}: the {} preset's stage II does not train on recordings yet (the cpu preset does)",
+                    args.input.display(),
+                    args.preset
+                );
+            }
+            cfg.room = Some(room_setup(&args.input, &opened, &cfg)?);
+            let ground_truth = has_ground_truth(&args.input).then(|| args.input.clone());
+            (opened, Reference { ground_truth, ..Reference::default() })
+        }
+    };
     let interrupt = super::progress::interrupt_on_ctrl_c();
     let viz = args.rerun.open()?;
     let control = SessionControl { interrupt: &interrupt, viz: &viz };
@@ -107,6 +118,39 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// A recording's object region and SLAM points, which training on its frames needs.
+fn room_setup(input: &Path, opened: &Opened, cfg: &SessionConfig) -> anyhow::Result<RoomSetup> {
+    if opened.trajectory_path.is_none() {
+        bail!(
+            "{}: a recording needs its camera poses (an MPS closed_loop_trajectory.csv beside it, or --trajectory)",
+            input.display()
+        );
+    }
+    let Some(region) = opened.region else {
+        bail!(
+            "{}: a recording needs the object's region (object_region.json beside it, or --region \
+             x0,y0,z0,x1,y1,z1 in its trajectory's world frame): its frames show the whole room",
+            input.display()
+        );
+    };
+    let Some(points_path) = &opened.points_path else {
+        bail!(
+            "{}: a recording needs its SLAM points (MPS semidense_points.csv.gz beside it, or --points): without them \
+             the room behind the object is learnt inside the object's region (docs/session.md)",
+            input.display()
+        );
+    };
+    let points: Vec<glam::Vec3> =
+        SemidensePoints::load(points_path)?.confident(MAX_POINT_DIST_STD).map(|p| p.as_vec3()).collect();
+    if points.is_empty() {
+        bail!("{}: no semidense point is placed to within {MAX_POINT_DIST_STD} m", points_path.display());
+    }
+    Ok(RoomSetup::new(region, points, cfg))
+}
+
+/// Semidense points placed less surely than this (metres) are left out.
+const MAX_POINT_DIST_STD: f64 = 0.05;
 
 /// An AiM dataset's held-out views and ground truth, for the metrics.
 fn reference(input: &Path, cfg: &SessionConfig) -> anyhow::Result<Reference> {

@@ -12,7 +12,8 @@
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use aim_capture::detect::MotionEvent;
+use aim_capture::crop::ObjectCrop;
+use aim_capture::detect::{MotionEvent, ObjectRegion};
 use aim_capture::ingest::{motion_time, Ingest, IngestConfig, IngestStats, Message};
 use aim_capture::recording::Opened;
 use aim_capture::{Frame, Phase};
@@ -37,6 +38,55 @@ pub struct SessionConfig {
     /// Frames kept per phase: past it the store keeps every other frame (and
     /// then every fourth, ...), so memory stays bounded on long captures.
     pub max_frames_per_phase: usize,
+    /// A raw recording's frames cut to the object and the room around it
+    /// learnt too (None: a dataset's frames show the object alone).
+    pub room: Option<RoomSetup>,
+}
+
+/// How a session separates the object from the room of a raw recording:
+/// stage I learns both from crops around the object region, starting from the
+/// recording's SLAM points (the room's Gaussians start where the room is, so
+/// they, not the region's, explain it); the object is what lies in the region;
+/// stages II and III see the room as a fixed backdrop behind it.
+#[derive(Clone, Debug)]
+pub struct RoomSetup {
+    pub crop: ObjectCrop,
+    /// Stage I's initial points (the recording's MPS semidense points).
+    pub points: crate::splat::ply::PointCloud,
+}
+
+impl RoomSetup {
+    /// Crops of `region` at the trainers' resolution, every pixel kept.
+    pub fn new(region: ObjectRegion, points: Vec<glam::Vec3>, cfg: &SessionConfig) -> Self {
+        let size = [cfg.stage_one.resolution, cfg.stage_two.resolution].into_iter().max().unwrap_or(0);
+        let size = if size == 0 { CROP_SIZE_AS_RECORDED } else { size };
+        let crop = ObjectCrop { region, size, margin: aim_capture::crop::DEFAULT_MARGIN, mask_outside: false };
+        RoomSetup { crop, points: crate::splat::ply::PointCloud { points, colors: None } }
+    }
+
+    fn contains(&self, p: glam::Vec3) -> bool {
+        let r = &self.crop.region;
+        p.cmpge(glam::Vec3::from(r.min.map(|v| v as f32))).all()
+            && p.cmple(glam::Vec3::from(r.max.map(|v| v as f32))).all()
+    }
+
+    /// Stage I's result split: the object (Gaussians in the region) written to
+    /// `object_ply`, and the room.
+    fn split(&self, static_ply: &Path, object_ply: &Path) -> Result<crate::splat::GaussianSet> {
+        let set = crate::splat::ply::read_ply(static_ply)?;
+        let inside: Vec<bool> = (0..set.len()).map(|i| self.contains(set.mean(i))).collect();
+        crate::splat::ply::write_ply(object_ply, &set.subset(&inside))?;
+        let outside: Vec<bool> = inside.iter().map(|b| !b).collect();
+        Ok(set.subset(&outside))
+    }
+}
+
+/// Each view's backdrop: the room rendered from its camera.
+fn set_backdrops(views: &mut [TrainView], room: &crate::splat::GaussianSet, background: glam::Vec3) {
+    for v in views {
+        let r = crate::render::render(room, &v.camera, &crate::render::RenderOptions::uniform(background));
+        v.backdrop = Some(r.image.color.into());
+    }
 }
 
 impl SessionConfig {
@@ -52,9 +102,13 @@ impl SessionConfig {
             ingest: IngestConfig::default(),
             mesh: TsdfConfig::default(),
             max_frames_per_phase: 512,
+            room: None,
         }
     }
 }
+
+/// Crop size when the presets train at the recorded resolution (0).
+const CROP_SIZE_AS_RECORDED: u32 = 512;
 
 /// What a session knows that its frames do not carry: held-out views for the
 /// metrics and ground truth (a synthetic dataset's), when there are any.
@@ -95,6 +149,8 @@ pub struct PhaseCounts {
 pub struct SessionReport {
     pub source: String,
     pub frames: PhaseCounts,
+    /// Frames dropped because the object region was out of their view (cropped inputs).
+    pub frames_without_object: usize,
     /// Hand-in and hand-out as the ingestion thread saw them (frame index and
     /// seconds on the source's clock; a dataset's clock is nominal, per phase).
     pub events: Vec<MotionEvent>,
@@ -169,6 +225,7 @@ pub fn run_session(
         let mut after = FrameStore::new(cfg.max_frames_per_phase);
         let mut events = Vec::new();
         let mut stage_one = None;
+        let mut frames_without_object = 0;
         for message in &ingest {
             if control.interrupt.load(Ordering::SeqCst) {
                 break;
@@ -182,6 +239,16 @@ pub fn run_session(
                     continue;
                 }
                 Message::Error(e) => return Err(Error::from(e)),
+            };
+            let frame = match &cfg.room {
+                None => frame,
+                Some(room) => match room.crop.apply(&frame) {
+                    Some(f) => f,
+                    None => {
+                        frames_without_object += 1;
+                        continue;
+                    }
+                },
             };
             log_frame(control.viz, &frame);
             if frame.phase == Phase::Scan {
@@ -204,7 +271,7 @@ pub fn run_session(
                 on_event(SessionEvent::StageOneStarted { views: scan.len() });
                 let (views, test, dir) = (std::mem::take(&mut scan), &reference.scan_test, &static_dir);
                 stage_one = Some(scope.spawn(move || {
-                    let setup = RunSetup { run_dir: dir, resume: false, init: None };
+                    let setup = RunSetup { run_dir: dir, resume: false, init: cfg.room.as_ref().map(|r| &r.points) };
                     let outcome =
                         run_static(cfg.stage_one.clone(), &views, test, &setup, control.interrupt, control.viz, |r| {
                             on_event(SessionEvent::StageOne(r))
@@ -250,10 +317,20 @@ pub fn run_session(
             end,
             ground_truth: reference.ground_truth,
         };
+        let mut input = input;
+        let mut start_state = static_dir.join("static.ply");
+        if let Some(room) = &cfg.room {
+            let object = static_dir.join("object.ply");
+            let room_set = room.split(&start_state, &object)?;
+            let bg = glam::Vec3::from(cfg.stage_two.eval_background);
+            set_backdrops(&mut input.motion, &room_set, bg);
+            set_backdrops(&mut input.end, &room_set, bg);
+            start_state = object;
+        }
         let run_control = RunControl { resume: false, interrupt: control.interrupt, viz: control.viz };
         let outcome = run_dynamic(
             input,
-            &static_dir.join("static.ply"),
+            &start_state,
             &out.join("dynamic"),
             cfg.stage_two.clone(),
             &cfg.mesh,
@@ -263,8 +340,15 @@ pub fn run_session(
         let DynamicOutcome::Finished { parts, metrics } = outcome else {
             return Ok(SessionOutcome::Interrupted);
         };
-        let report =
-            SessionReport { source, frames, events, ingest: stats, stage_one: stage_one_metrics, stage_two: *metrics };
+        let report = SessionReport {
+            source,
+            frames,
+            frames_without_object,
+            events,
+            ingest: stats,
+            stage_one: stage_one_metrics,
+            stage_two: *metrics,
+        };
         let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Other(e.to_string()))?;
         write_atomic(&out.join("session.json"), &json)?;
         Ok(SessionOutcome::Finished { parts, report: Box::new(report) })
@@ -321,6 +405,7 @@ mod tests {
             alpha: None,
             time: None,
             depth: None,
+            backdrop: None,
         }
     }
 

@@ -29,7 +29,7 @@ use super::views::TrainView;
 use crate::error::{Error, Result};
 use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::project::{project_one, ProjectionCamera};
-use crate::render::{backward, render, render_region, RenderOptions};
+use crate::render::{backward, render, render_region};
 use crate::splat::GaussianSet;
 
 mod end_state;
@@ -1179,7 +1179,7 @@ impl NodeTracker {
         views: &[&TrainView],
     ) -> Vec<f32> {
         let last = parts.poses.len() - 1;
-        let options = RenderOptions::uniform(Vec3::from(self.config.eval_background));
+        let bg = Vec3::from(self.config.eval_background);
         let cap = self.config.track.validation_residual_cap;
         let in_part = |i: usize| i < self.binding.len() && parts.node_part[self.binding[i] as usize] == p + 1;
         let at_pose = |pose: Option<NodePose>| {
@@ -1195,8 +1195,8 @@ impl NodeTracker {
         let bases: Vec<(Vec<f32>, ViewResiduals)> = views
             .iter()
             .map(|v| {
-                let target = v.target(options.background);
-                let r = render(&without, &v.camera, &options);
+                let target = v.target(bg);
+                let r = render(&without, &v.camera, &v.render_options(bg));
                 let base = ViewResiduals::new(pixel_residuals(&r.image.color, &target, cap));
                 (target, base)
             })
@@ -1213,7 +1213,7 @@ impl NodeTracker {
                         let sum = match footprint(&g, &v.camera, 0, in_part) {
                             None => base.sum,
                             Some(region) => {
-                                let r = render_region(&g, &v.camera, region, &options);
+                                let r = render_region(&g, &v.camera, region, &v.render_options(bg));
                                 base.sum_with(
                                     w,
                                     region,
@@ -1481,7 +1481,7 @@ impl NodeTracker {
                 let t = v.time.unwrap_or(0.0);
                 let poses = assigned.node_poses(&self.node_centres, &at);
                 let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
-                let r = render(&g, &v.camera, &RenderOptions::uniform(bg));
+                let r = render(&g, &v.camera, &v.render_options(bg));
                 let sum: f32 = pixel_residuals(&r.image.color, &v.target(bg), cap).into_iter().sum();
                 sum / (r.width * r.height) as f32
             })
@@ -1497,7 +1497,7 @@ impl NodeTracker {
             .iter()
             .map(|v| {
                 let g = self.revealed.with(self.deformed_at(v.time.unwrap_or(0.0)));
-                let r = render(&g, &v.camera, &RenderOptions::uniform(bg));
+                let r = render(&g, &v.camera, &v.render_options(bg));
                 psnr(&r.image.color, &v.target(bg))
             })
             .sum();
@@ -1638,7 +1638,7 @@ fn region_step(
     depth_weight: f32,
 ) -> RegionStep {
     let (width, height) = (view.camera.width(), view.camera.height());
-    let render = render_region(g, &view.camera, region, &RenderOptions::uniform(bg));
+    let render = render_region(g, &view.camera, region, &view.render_options(bg));
     let target = view.target(bg);
     // The whole view (every tracking step) needs no copy.
     let target = if region == [0, 0, width, height] { target } else { crop(&target, width, 3, region) };
@@ -1804,6 +1804,7 @@ mod tests {
 
     use super::*;
     use crate::camera::{Camera, Intrinsics};
+    use crate::render::RenderOptions;
     use crate::splat::logit;
 
     /// A few large, overlapping Gaussians in front of a small camera, bound to two
@@ -2008,6 +2009,7 @@ mod tests {
             alpha: Some(r.image.alpha),
             time: Some(1.0),
             depth: None,
+            backdrop: None,
         }
     }
 

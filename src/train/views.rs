@@ -2,12 +2,15 @@
 //! floats, resized to the training resolution, ready to composite over any
 //! background.
 
+use std::sync::Arc;
+
 use aim_capture::Frame;
 use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
+use crate::render::RenderOptions;
 
 /// One posed target image.
 #[derive(Clone, Debug)]
@@ -23,6 +26,10 @@ pub struct TrainView {
     /// Metric z-depth per pixel (metres, 0 = unknown), when the dataset has it and
     /// it was asked for; resized by nearest pixel (depths must not blend across edges).
     pub depth: Option<Vec<f32>>,
+    /// What the view shows behind the object (row-major RGB), when that is a
+    /// fixed scene rather than one colour: the room of a raw recording,
+    /// rendered from the room's own Gaussians.
+    pub backdrop: Option<Arc<[f32]>>,
 }
 
 impl TrainView {
@@ -82,6 +89,7 @@ impl TrainView {
             alpha: (!opaque).then_some(alpha),
             time: frame.motion_time,
             depth,
+            backdrop: None,
         })
     }
 
@@ -102,6 +110,12 @@ impl TrainView {
     }
 
     /// The target composited over `background`.
+    /// How to render the object for this view: over its backdrop when it has one,
+    /// else over `background`.
+    pub fn render_options(&self, background: Vec3) -> RenderOptions {
+        RenderOptions { background_image: self.backdrop.clone(), ..RenderOptions::uniform(background) }
+    }
+
     pub fn target(&self, background: Vec3) -> Vec<f32> {
         match &self.alpha {
             None => self.premultiplied.clone(),

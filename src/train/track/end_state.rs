@@ -14,7 +14,7 @@ use glam::{DMat3, DQuat, Vec3};
 
 use super::{evenly_spread, NodePose, NodeTracker, TrackedParts};
 use crate::motion::Rigid;
-use crate::render::{render, RenderOptions};
+use crate::render::render;
 use crate::train::views::TrainView;
 
 /// End-state views each candidate node's residual is measured on.
@@ -118,7 +118,7 @@ impl NodeTracker {
         let n = self.node_centres.len();
         let mut seen: Vec<Vec<f32>> = vec![Vec::new(); n];
         for v in views {
-            let r = render(&g, &v.camera, &RenderOptions::uniform(bg));
+            let r = render(&g, &v.camera, &v.render_options(bg));
             let target = v.target(bg);
             let depth = r.expected_depth();
             let w = r.width as usize;
@@ -400,6 +400,7 @@ mod tests {
     use super::*;
     use crate::camera::{Camera, Intrinsics};
     use crate::render::Render;
+    use crate::render::RenderOptions;
     use crate::splat::{logit, GaussianSet};
     use crate::train::dynamic_stage::DynamicConfig;
 
@@ -450,6 +451,7 @@ mod tests {
                     alpha: Some(r.image.alpha),
                     time: Some(time),
                     depth: None,
+                    backdrop: None,
                 }
             })
             .collect()
