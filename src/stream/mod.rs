@@ -64,10 +64,14 @@ impl RoomSetup {
         RoomSetup { crop, points: crate::splat::ply::PointCloud { points, colors: None } }
     }
 
+    /// Whether a Gaussian centred at `p` is the object's: inside the region
+    /// grown by `OBJECT_MARGIN` of its size, since a region drawn tight to the
+    /// object has the object's surface Gaussians on both sides of its faces.
     fn contains(&self, p: glam::Vec3) -> bool {
         let r = &self.crop.region;
-        p.cmpge(glam::Vec3::from(r.min.map(|v| v as f32))).all()
-            && p.cmple(glam::Vec3::from(r.max.map(|v| v as f32))).all()
+        let (lo, hi) = (glam::Vec3::from(r.min.map(|v| v as f32)), glam::Vec3::from(r.max.map(|v| v as f32)));
+        let margin = OBJECT_MARGIN * (hi - lo).max_element();
+        p.cmpge(lo - margin).all() && p.cmple(hi + margin).all()
     }
 
     /// Stage I's result split: the object (Gaussians in the region) written to
@@ -81,11 +85,24 @@ impl RoomSetup {
     }
 }
 
-/// Each view's backdrop: the room rendered from its camera.
-fn set_backdrops(views: &mut [TrainView], room: &crate::splat::GaussianSet, background: glam::Vec3) {
+/// Each view's backdrop: the room rendered from its camera where the room's
+/// Gaussians cover the pixel, and the frame itself where they do not (parts of
+/// the room no scan frame showed): a pixel of unknown room then costs nothing
+/// whatever the object does there, rather than pulling the object towards a
+/// colour the room never had.
+fn set_backdrops(views: &mut [TrainView], room: &crate::splat::GaussianSet) {
     for v in views {
-        let r = crate::render::render(room, &v.camera, &crate::render::RenderOptions::uniform(background));
-        v.backdrop = Some(r.image.color.into());
+        let r = crate::render::render(room, &v.camera, &crate::render::RenderOptions::uniform(glam::Vec3::ZERO));
+        let frame = v.target(glam::Vec3::ZERO);
+        let backdrop: Vec<f32> = r
+            .image
+            .color
+            .iter()
+            .zip(&frame)
+            .enumerate()
+            .map(|(k, (room, seen))| room + (1.0 - r.image.alpha[k / 3]) * seen)
+            .collect();
+        v.backdrop = Some(backdrop.into());
     }
 }
 
@@ -106,6 +123,10 @@ impl SessionConfig {
         }
     }
 }
+
+/// How far past the region's faces a Gaussian still counts as the object's,
+/// as a fraction of the region's largest side.
+const OBJECT_MARGIN: f32 = 0.05;
 
 /// Crop size when the presets train at the recorded resolution (0).
 const CROP_SIZE_AS_RECORDED: u32 = 512;
@@ -322,9 +343,8 @@ pub fn run_session(
         if let Some(room) = &cfg.room {
             let object = static_dir.join("object.ply");
             let room_set = room.split(&start_state, &object)?;
-            let bg = glam::Vec3::from(cfg.stage_two.eval_background);
-            set_backdrops(&mut input.motion, &room_set, bg);
-            set_backdrops(&mut input.end, &room_set, bg);
+            set_backdrops(&mut input.motion, &room_set);
+            set_backdrops(&mut input.end, &room_set);
             start_state = object;
         }
         let run_control = RunControl { resume: false, interrupt: control.interrupt, viz: control.viz };

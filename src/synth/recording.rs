@@ -263,37 +263,61 @@ fn plan(obj: &ArticulatedObject, cfg: &RecordingConfig) -> Result<Script> {
     Ok(Script { t_in, t_out, approach: cfg.approach_s, part, contact, d_in, d_out, travel: 0.45, side })
 }
 
-/// Head pose (OpenCV camera, upright) at time `s`: an arc in front of the object.
-fn head_camera(obj: &ArticulatedObject, target: Vec3, distance: f32, s: f64, total: f64) -> (Vec3, Mat3) {
-    let az0 = obj.view.front_azimuth_deg.to_radians() as f64;
-    let u = s / total;
-    let az = az0 + 0.55 * (std::f64::consts::PI * (2.0 * u - 0.5)).sin() * 0.8;
-    let el = (18.0f64 + 6.0 * (2.0 * std::f64::consts::PI * 1.7 * u).sin()).to_radians();
-    let (az, el) = (az as f32, el as f32);
-    let bob = 0.01 * (2.0 * std::f64::consts::PI * 1.9 * s).sin() as f32;
-    let eye = target + distance * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()) + Vec3::Z * bob;
-    let look = target + Vec3::new(0.03 * (3.1 * s).sin() as f32, 0.0, 0.03 * (2.3 * s).cos() as f32);
-    let z = (look - eye).normalize();
-    let x = z.cross(Vec3::Z).normalize();
-    let y = z.cross(x);
-    (eye, Mat3::from_cols(x, y, z))
+/// Where the wearer's head goes: while scanning, a walk along a wide arc in front
+/// of the object (out to about 60 degrees each side and up and down, so the scan
+/// sees the object from where the rest of the recording will), then a narrow
+/// arc while the hand is busy and after.
+struct HeadPath {
+    target: Vec3,
+    distance: f32,
+    /// The object's front azimuth (radians).
+    front: f64,
+    scan_s: f64,
+    total: f64,
 }
+
+impl HeadPath {
+    /// Head pose (OpenCV camera, upright) at time `s`.
+    fn camera(&self, s: f64) -> (Vec3, Mat3) {
+        use std::f64::consts::PI;
+        let u = s / self.total;
+        // The scan's extra sweep is zero at its start and end, so the path is continuous.
+        let scan = (s / self.scan_s).clamp(0.0, 1.0);
+        let sweep = SCAN_SWEEP * (2.0 * PI * scan).sin();
+        let az = self.front + 0.44 * (PI * (2.0 * u - 0.5)).sin() + sweep;
+        let el = (18.0 + 6.0 * (2.0 * PI * 1.7 * u).sin() + SCAN_RISE_DEG * (PI * scan).sin()).to_radians();
+        let (az, el) = (az as f32, el as f32);
+        let bob = 0.01 * (2.0 * PI * 1.9 * s).sin() as f32;
+        let eye =
+            self.target + self.distance * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()) + Vec3::Z * bob;
+        let look = self.target + Vec3::new(0.03 * (3.1 * s).sin() as f32, 0.0, 0.03 * (2.3 * s).cos() as f32);
+        let z = (look - eye).normalize();
+        let x = z.cross(Vec3::Z).normalize();
+        let y = z.cross(x);
+        (eye, Mat3::from_cols(x, y, z))
+    }
+
+    /// Raw Aria RGB camera-to-world at time `s` (sensor mounted 90 degrees from
+    /// upright) and the device pose.
+    fn poses(&self, s: f64) -> (Se3, Se3) {
+        let (eye, r_upright) = self.camera(s);
+        // p_upright = Rz(90) p_raw.
+        let r_raw = r_upright * Mat3::from_rotation_z(std::f32::consts::FRAC_PI_2);
+        let t_world_camera = Se3::new(to_dquat(r_raw), eye.as_dvec3());
+        let (t, q) = ARIA_RGB_T_DEVICE_CAMERA;
+        let t_device_camera = Se3::new(DQuat::from_xyzw(q[1], q[2], q[3], q[0]), DVec3::from_array(t));
+        (t_world_camera, t_world_camera.compose(&t_device_camera.inverse()))
+    }
+}
+
+/// The scan's sweep beyond the narrow arc, each way (radians).
+const SCAN_SWEEP: f64 = 0.6;
+/// How much higher the head goes mid-scan (degrees).
+const SCAN_RISE_DEG: f64 = 12.0;
 
 fn to_dquat(m: Mat3) -> DQuat {
     let q = Quat::from_mat3(&m).normalize();
     DQuat::from_xyzw(q.x as f64, q.y as f64, q.z as f64, q.w as f64).normalize()
-}
-
-/// Raw Aria RGB camera-to-world at time `s` (sensor mounted 90 degrees from upright) and
-/// the device pose.
-fn poses(obj: &ArticulatedObject, target: Vec3, distance: f32, s: f64, total: f64) -> (Se3, Se3) {
-    let (eye, r_upright) = head_camera(obj, target, distance, s, total);
-    // p_upright = Rz(90) p_raw.
-    let r_raw = r_upright * Mat3::from_rotation_z(std::f32::consts::FRAC_PI_2);
-    let t_world_camera = Se3::new(to_dquat(r_raw), eye.as_dvec3());
-    let (t, q) = ARIA_RGB_T_DEVICE_CAMERA;
-    let t_device_camera = Se3::new(DQuat::from_xyzw(q[1], q[2], q[3], q[0]), DVec3::from_array(t));
-    (t_world_camera, t_world_camera.compose(&t_device_camera.inverse()))
 }
 
 /// The RGB calibration at native resolution, as Aria stores it.
@@ -361,13 +385,10 @@ fn render_fisheye(
 /// scan frame, displaced along the ray by noise of `SEMIDENSE_DIST_STD` of its
 /// distance (the SLAM's depth uncertainty grows with distance), with that
 /// standard deviation written beside it.
-#[allow(clippy::too_many_arguments)]
 fn write_semidense_points(
     obj: &ArticulatedObject,
     cam: &CameraCalibration,
-    target: Vec3,
-    distance: f32,
-    total: f64,
+    head: &HeadPath,
     cfg: &RecordingConfig,
     floor_z: f32,
     dir: &Path,
@@ -379,7 +400,7 @@ fn write_semidense_points(
     let frames = (cfg.scan_s * cfg.fps).floor() as usize;
     let mut uid = 0u64;
     for k in 0..frames {
-        let (t_wc, _) = poses(obj, target, distance, k as f64 / cfg.fps, total);
+        let (t_wc, _) = head.poses(k as f64 / cfg.fps);
         let (rot, origin) = (t_wc.rotation.as_quat(), t_wc.translation.as_vec3());
         for _ in 0..SEMIDENSE_RAYS_PER_FRAME {
             let pixel = DVec2::new(rng.random_range(0.0..cam.width as f64), rng.random_range(0.0..cam.height as f64));
@@ -453,6 +474,13 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     let region = swept_bounds(obj);
     let target = obj.posed(0.0).bounds().center();
     let distance = cfg.distance.unwrap_or(obj.view.distance * 0.6);
+    let head = HeadPath {
+        target,
+        distance,
+        front: f64::from(obj.view.front_azimuth_deg.to_radians()),
+        scan_s: cfg.scan_s,
+        total,
+    };
     let floor_z = region.min.z;
     let hand = hand_part();
     let lighting = Lighting::default();
@@ -462,12 +490,12 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     let mut ts_csv = String::from("file,timestamp_ns\n");
     for k in 0..n {
         let s = k as f64 / cfg.fps;
-        let (t_wc, _) = poses(obj, target, distance, s, total);
+        let (t_wc, _) = head.poses(s);
         let mut scene = obj.posed(script.motion_time(s));
         if cfg.hand {
             if let Some(h) = script.hand(obj, s) {
                 scene.push(hand.clone(), HAND_ID, h.pose);
-                let (eye, r_up) = head_camera(obj, target, distance, s, total);
+                let (eye, r_up) = head.camera(s);
                 let shoulder = eye + r_up * Vec3::new(0.2 * script.side, 0.3, -0.05);
                 let wrist = h.pose.transform_point3(Vec3::new(0.1, 0.0, 0.0));
                 scene.push(arm_part(wrist, shoulder), HAND_ID, glam::Affine3A::IDENTITY);
@@ -507,7 +535,7 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     let steps = ((total + 0.1) * 1000.0) as i64;
     for k in -50..steps {
         let s = k as f64 / 1000.0;
-        let (_, t_wd) = poses(obj, target, distance, s, total);
+        let (_, t_wd) = head.poses(s);
         traj.push_str(&se3_row(start_us + k * 1000, &t_wd));
     }
     write_atomic(&out.join("mps/slam/closed_loop_trajectory.csv"), traj.as_bytes())?;
@@ -523,7 +551,7 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
         let hand_now = if cfg.hand { script.hand(obj, s) } else { None };
         match hand_now {
             Some(h) => {
-                let (_, t_wd) = poses(obj, target, distance, s, total);
+                let (_, t_wd) = head.poses(s);
                 let t_dw = t_wd.inverse();
                 let palm = t_dw.transform_point(h.pose.transform_point3(Vec3::ZERO).as_dvec3());
                 let wrist = t_dw.transform_point(h.pose.transform_point3(Vec3::new(0.07, 0.0, 0.0)).as_dvec3());
@@ -537,7 +565,7 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     }
     write_atomic(&out.join("mps/hand_tracking/wrist_and_palm_poses.csv"), ht.as_bytes())?;
 
-    write_semidense_points(obj, &cam, target, distance, total, cfg, floor_z, &out.join("mps/slam"))?;
+    write_semidense_points(obj, &cam, &head, cfg, floor_z, &out.join("mps/slam"))?;
 
     let region_json = serde_json::json!({ "min": region.min.to_array(), "max": region.max.to_array() });
     write_atomic(&out.join("object_region.json"), &serde_json::to_vec_pretty(&region_json).unwrap_or_default())?;
