@@ -15,7 +15,7 @@ use super::dynamic_stage::{
     StageTwoMethod, StageTwoViews,
 };
 use super::static_stage::peak_rss_mib;
-use super::track::NodeTracker;
+use super::track::{NodePose, NodeTracker};
 use super::views::load_phase_views;
 use super::views::TrainView;
 use crate::error::{write_atomic, Error, Result};
@@ -66,9 +66,14 @@ pub struct DynamicMetrics {
     /// With ground truth (gt/joints.json): the matched joints' errors.
     pub gt_report: Option<ArticulationReport>,
     /// With ground truth and node tracking: how far the tracked nodes are from
-    /// their true positions over the motion, per ground-truth part.
+    /// their true positions over the motion, per ground-truth part, as the run
+    /// ends (a node left in the base counts as not moving at all).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tracking_error: Option<Vec<TrackingError>>,
+    /// The same for the free tracking as it was when the parts were found (up to
+    /// `discovery_time`): how well each part was followed before grouping.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tracking_error_at_discovery: Option<Vec<TrackingError>>,
 }
 
 /// How a stage II run ended.
@@ -346,7 +351,11 @@ fn run_node_track(
         tracker.refit_end_poses(&end_views);
     }
     let motion_test_psnr = (!run.test.is_empty()).then(|| tracker.evaluate(run.test));
-    let tracking_error = run.ground_truth.map(|gt| node_tracking_error(gt, &tracker)).transpose()?;
+    let errors = run.ground_truth.map(|gt| node_tracking_error(gt, &tracker)).transpose()?;
+    let (tracking_error, tracking_error_at_discovery) = match errors {
+        Some((end, free)) => (Some(end), (!free.is_empty()).then_some(free)),
+        None => (None, None),
+    };
     let (parts, labels) = tracker.analyse();
     let with_label = |l: usize| tracker.gaussians.subset(&labels.iter().map(|&x| x == l).collect::<Vec<_>>());
     let base = with_label(0);
@@ -372,27 +381,39 @@ fn run_node_track(
         motion_test_psnr,
         moving_gaussians: moving.len(),
         wall_time_s: elapsed(&started),
-        tracking_error,
+        tracking_error: tracking_error.map(|end| (end, tracking_error_at_discovery)),
     };
     finish(run, control.viz, &base, parts, &part_sets, summary)
 }
 
 /// The tracked nodes' distance from their true positions (the ground truth of
 /// the dataset `dataset`) at tenths of the motion, per ground-truth part (also logged).
-fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<Vec<TrackingError>> {
+fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<(Vec<TrackingError>, Vec<TrackingError>)> {
     let gt = GroundTruth::load(dataset)?;
-    let at = |t: f32| tracker.poses_at(t).iter().zip(&tracker.node_centres).map(|(p, &c)| c + p.translation).collect();
+    let positions =
+        |poses: Vec<NodePose>| poses.iter().zip(&tracker.node_centres).map(|(p, &c)| c + p.translation).collect();
     let times: Vec<f32> = (1..=10).map(|k| k as f32 / 10.0).collect();
-    let errors = tracking_errors(&gt, &tracker.node_centres, at, &times, tracker.config.seed);
-    for e in &errors {
-        let parts: Vec<String> = e
-            .parts
-            .iter()
-            .map(|p| format!("part {} ({} nodes) median {:.3} p90 {:.3}", p.gt_part, p.points, p.median, p.p90))
-            .collect();
-        tracing::info!("tracking error at t = {:.1}: {}", e.time, parts.join("; "));
+    let seed = tracker.config.seed;
+    let errors = tracking_errors(&gt, &tracker.node_centres, |t| positions(tracker.poses_at(t)), &times, seed);
+    let free_times: Vec<f32> = times.iter().copied().filter(|&t| tracker.free_poses_at(t).is_some()).collect();
+    let free = tracking_errors(
+        &gt,
+        &tracker.node_centres,
+        |t| positions(tracker.free_poses_at(t).expect("a time free tracking fitted")),
+        &free_times,
+        seed,
+    );
+    for (what, list) in [("tracking error", &errors), ("free tracking error at discovery", &free)] {
+        for e in list {
+            let parts: Vec<String> = e
+                .parts
+                .iter()
+                .map(|p| format!("part {} ({} nodes) median {:.3} p90 {:.3}", p.gt_part, p.points, p.median, p.p90))
+                .collect();
+            tracing::info!("{what} at t = {:.1}: {}", e.time, parts.join("; "));
+        }
     }
-    Ok(errors)
+    Ok((errors, free))
 }
 
 const TRACK_CHECKPOINT_STAGE: &str = "stage II tracking";
@@ -439,7 +460,8 @@ struct RunSummary {
     motion_test_psnr: Option<f32>,
     moving_gaussians: usize,
     wall_time_s: f64,
-    tracking_error: Option<Vec<TrackingError>>,
+    /// At the end, and (when recorded) at discovery.
+    tracking_error: Option<(Vec<TrackingError>, Option<Vec<TrackingError>>)>,
 }
 
 /// Write the twin (the static base and each part's Gaussians at t = 0), log the
@@ -492,7 +514,8 @@ fn finish(
             })
             .collect(),
         gt_report,
-        tracking_error: summary.tracking_error,
+        tracking_error: summary.tracking_error.as_ref().map(|(end, _)| end.clone()),
+        tracking_error_at_discovery: summary.tracking_error.and_then(|(_, free)| free),
     };
     let json = serde_json::to_vec_pretty(&metrics).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&run.out.join("metrics.json"), &json)?;

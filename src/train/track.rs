@@ -307,6 +307,11 @@ pub struct NodeTracker {
     pub iterations_per_segment: u32,
     /// Static content the start state lacks, learnt as the motion reveals it.
     pub revealed: RevealedContent,
+    /// The free tracking's knots as they were when the parts were found (the
+    /// rigid parts rewrite every knot afterwards): what the tracking error at
+    /// discovery reads. Not checkpointed (empty after a resume past discovery).
+    #[serde(skip)]
+    pub free_knots: Vec<Vec<NodePose>>,
 }
 
 /// The parts found at the end of free tracking, tracked rigidly from then on.
@@ -416,6 +421,7 @@ impl NodeTracker {
         tracing::info!(nodes = n, revealed = revealed.len(), "stage II: start state bound to nodes");
         Ok(Self {
             revealed,
+            free_knots: Vec::new(),
             arap_scale: t.arap_scale * median_spacing,
             object_size: size,
             iterations_per_segment: (config.iterations / Self::planned_fits(t) as u32).max(1),
@@ -492,6 +498,13 @@ impl NodeTracker {
     /// The node poses at time `t` (interpolated between the fitted knots).
     pub fn poses_at(&self, t: f32) -> Vec<NodePose> {
         self.interpolated(&self.knots, t, NodePose::lerp)
+    }
+
+    /// The node poses at time `t` as free tracking had them when the parts were
+    /// found; None past the last knot it fitted, or when no discovery was recorded.
+    pub fn free_poses_at(&self, t: f32) -> Option<Vec<NodePose>> {
+        let last = self.free_knots.len().checked_sub(1)?;
+        (t <= self.knot_time(last) + 1e-6).then(|| self.interpolated(&self.free_knots, t, NodePose::lerp))
     }
 
     /// The node log gains at time `t` (linear between the fitted knots).
@@ -659,6 +672,7 @@ impl NodeTracker {
             self.clean_parts(frames, &[]);
         }
         if !articulated && self.knot_time(j) >= c.track.discovery_time - 1e-6 && j < self.segments() {
+            self.free_knots = self.knots.clone();
             self.articulation = self.discover_parts();
             if c.track.refit_from_start {
                 if let Some(parts) = &mut self.articulation {
