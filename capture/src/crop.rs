@@ -2,10 +2,11 @@
 //! whole room with the object a fraction of it; the trainers model one object
 //! against a known background. [`ObjectCrop`] cuts each frame to the square
 //! around the object region's image rectangle (the principal point shifted, the
-//! focal length scaled: still an exact pinhole camera), resamples it to a fixed
-//! size, and marks as background (alpha 0) every pixel whose ray misses the
-//! region: nothing of the object can be seen there. Pixels whose rays cross the
-//! region keep their colour, whatever they see behind it.
+//! focal length scaled: still an exact pinhole camera) and resamples it to a
+//! fixed size. With `mask_outside` it marks as background (alpha 0) every pixel
+//! whose ray misses the region (nothing of the object can be seen there; what
+//! `aim capture crop` shows); without, every pixel keeps what it shows (the
+//! session learns the room around the object too).
 
 use glam::{Mat4, Vec3};
 
@@ -64,8 +65,7 @@ impl ObjectCrop {
                 for sx in 0..taps {
                     let u = i as f32 + (sx as f32 + 0.5) / taps as f32;
                     let v = j as f32 + (sy as f32 + 0.5) / taps as f32;
-                    let dir = ray_direction(&c2w, &cropped, u, v);
-                    if self.mask_outside && !ray_hits_box(eye, dir, lo, hi) {
+                    if self.mask_outside && !ray_hits_box(eye, ray_direction(&c2w, &cropped, u, v), lo, hi) {
                         continue;
                     }
                     let s = bilinear(src, origin[0] + u / scale, origin[1] + v / scale);

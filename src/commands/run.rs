@@ -10,9 +10,8 @@ use anyhow::bail;
 use aim::eval::twin::has_ground_truth;
 use aim::stream::{run_session, Reference, RoomSetup, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
 use aim::train::config::{StageConfig, StaticConfig};
-use aim::train::dynamic_stage::{DynamicConfig, StageTwoMethod};
-use aim_capture::mps::SemidensePoints;
-use aim_capture::recording::{open_recording, Opened, RecordingOptions};
+use aim::train::dynamic_stage::DynamicConfig;
+use aim_capture::recording::{open_recording, RecordingOptions};
 use aim_capture::source::{dataset_layout, DatasetLayout};
 use aim_capture::Phase;
 
@@ -65,14 +64,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         None => {
             let opened = open_recording(&args.input, &args.recording.options(super::capture::TRAIN_UNDISTORT)?)?;
-            if cfg.stage_two.method != StageTwoMethod::NodeTrack {
-                bail!(
-                    "{}: the {} preset's stage II does not train on recordings yet (the cpu preset does)",
-                    args.input.display(),
-                    args.preset
-                );
-            }
-            cfg.room = Some(room_setup(&args.input, &opened, &cfg)?);
+            cfg.room = Some(RoomSetup::for_recording(&args.input, &opened, &cfg)?);
             let ground_truth = has_ground_truth(&args.input).then(|| args.input.clone());
             (opened, Reference { ground_truth, ..Reference::default() })
         }
@@ -118,39 +110,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     Ok(())
 }
-
-/// A recording's object region and SLAM points, which training on its frames needs.
-fn room_setup(input: &Path, opened: &Opened, cfg: &SessionConfig) -> anyhow::Result<RoomSetup> {
-    if opened.trajectory_path.is_none() {
-        bail!(
-            "{}: a recording needs its camera poses (an MPS closed_loop_trajectory.csv beside it, or --trajectory)",
-            input.display()
-        );
-    }
-    let Some(region) = opened.region else {
-        bail!(
-            "{}: a recording needs the object's region (object_region.json beside it, or --region \
-             x0,y0,z0,x1,y1,z1 in its trajectory's world frame): its frames show the whole room",
-            input.display()
-        );
-    };
-    let Some(points_path) = &opened.points_path else {
-        bail!(
-            "{}: a recording needs its SLAM points (MPS semidense_points.csv.gz beside it, or --points): without them \
-             the room behind the object is learnt inside the object's region (docs/session.md)",
-            input.display()
-        );
-    };
-    let points: Vec<glam::Vec3> =
-        SemidensePoints::load(points_path)?.confident(MAX_POINT_DIST_STD).map(|p| p.as_vec3()).collect();
-    if points.is_empty() {
-        bail!("{}: no semidense point is placed to within {MAX_POINT_DIST_STD} m", points_path.display());
-    }
-    Ok(RoomSetup::new(region, points, cfg))
-}
-
-/// Semidense points placed less surely than this (metres) are left out.
-const MAX_POINT_DIST_STD: f64 = 0.05;
 
 /// An AiM dataset's held-out views and ground truth, for the metrics.
 fn reference(input: &Path, cfg: &SessionConfig) -> anyhow::Result<Reference> {

@@ -56,7 +56,7 @@ pub struct Render {
     pub projection: ProjectionCamera,
     pub options: RenderOptions,
     /// The background image's pixels of this render (its region), when it has one.
-    pub background_pixels: Option<Vec<f32>>,
+    pub background_pixels: Option<Arc<[f32]>>,
     pub sh_degree: u32,
     /// Row-major RGB (background included), alpha, accumulated depth (see [`raster::RasterOutput`]).
     pub image: raster::RasterOutput,
@@ -123,11 +123,16 @@ pub fn render_region(gs: &GaussianSet, camera: &Camera, region: [u32; 4], option
     let (w, h) = (x1 - x0, y1 - y0);
     let bins = raster::bin_tiles(&projected, w, h);
     let background_pixels = options.background_image.as_ref().map(|img| {
-        let full = camera.width() as usize;
-        assert_eq!(img.len(), 3 * full * camera.height() as usize, "background image must match the camera");
-        (y0 as usize..y1 as usize)
-            .flat_map(|y| img[3 * (y * full + x0 as usize)..3 * (y * full + x1 as usize)].iter().copied())
-            .collect::<Vec<f32>>()
+        assert_eq!(
+            img.len(),
+            3 * (camera.width() * camera.height()) as usize,
+            "background image must match the camera"
+        );
+        if region == [0, 0, camera.width(), camera.height()] {
+            img.clone()
+        } else {
+            crop(img, camera.width(), 3, region).into()
+        }
     });
     let image = raster::rasterize(&bins, w, h, background_of(options, background_pixels.as_deref()));
     let mut camera = *camera;
@@ -154,6 +159,19 @@ fn background_of<'a>(options: &RenderOptions, pixels: Option<&'a [f32]>) -> rast
         Some(p) => raster::Background::Image(p),
         None => raster::Background::Uniform(options.background),
     }
+}
+
+/// The pixels `region` = [x0, y0, x1, y1) of a row-major image `width` pixels
+/// wide with `channels` values per pixel.
+pub fn crop(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> Vec<f32> {
+    region_rows(image, width, channels, region).flatten().copied().collect()
+}
+
+/// The rows of `region` in such an image, top to bottom.
+pub fn region_rows(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> impl Iterator<Item = &[f32]> {
+    let [x0, y0, x1, y1] = region.map(|v| v as usize);
+    let w = width as usize;
+    (y0..y1).map(move |y| &image[channels * (y * w + x0)..channels * (y * w + x1)])
 }
 
 /// Backward pass: `grad_color` is dL/d(RGB) (row-major, 3 per pixel); optional

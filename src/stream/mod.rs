@@ -15,6 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use aim_capture::crop::ObjectCrop;
 use aim_capture::detect::{MotionEvent, ObjectRegion};
 use aim_capture::ingest::{motion_time, Ingest, IngestConfig, IngestStats, Message};
+use aim_capture::mps::SemidensePoints;
 use aim_capture::recording::Opened;
 use aim_capture::{Frame, Phase};
 use serde::Serialize;
@@ -23,7 +24,7 @@ use crate::error::{write_atomic, Error, Result};
 use crate::mesh::tsdf::TsdfConfig;
 use crate::train::config::StaticConfig;
 use crate::train::dynamic_run::{run_dynamic, DynamicMetrics, DynamicOutcome, RunControl, StageTwoInput};
-use crate::train::dynamic_stage::{DynamicConfig, DynamicStep, PartEstimate};
+use crate::train::dynamic_stage::{DynamicConfig, DynamicStep, PartEstimate, StageTwoMethod};
 use crate::train::static_stage::{run_static, RunOutcome, RunSetup, StaticMetrics, StepReport};
 use crate::train::views::TrainView;
 use crate::viz::Viz;
@@ -62,6 +63,40 @@ impl RoomSetup {
         let size = if size == 0 { CROP_SIZE_AS_RECORDED } else { size };
         let crop = ObjectCrop { region, size, margin: aim_capture::crop::DEFAULT_MARGIN, mask_outside: false };
         RoomSetup { crop, points: crate::splat::ply::PointCloud { points, colors: None } }
+    }
+
+    /// The setup of the recording `input` as opened: its poses, object region and
+    /// SLAM points are all needed, and each missing one is named.
+    pub fn for_recording(input: &Path, opened: &Opened, cfg: &SessionConfig) -> Result<Self> {
+        if opened.trajectory_path.is_none() {
+            return Err(Error::bad_file(
+                input,
+                "a recording needs its camera poses (an MPS closed_loop_trajectory.csv beside it, or --trajectory)",
+            ));
+        }
+        let Some(region) = opened.region else {
+            return Err(Error::bad_file(
+                input,
+                "a recording needs the object's region (object_region.json beside it, or --region \
+                 x0,y0,z0,x1,y1,z1 in its trajectory's world frame): its frames show the whole room",
+            ));
+        };
+        let Some(points_path) = &opened.points_path else {
+            return Err(Error::bad_file(
+                input,
+                "a recording needs its SLAM points (MPS semidense_points.csv.gz beside it, or --points): without them \
+                 the room behind the object is learnt inside the object's region (docs/session.md)",
+            ));
+        };
+        let points: Vec<glam::Vec3> =
+            SemidensePoints::load(points_path)?.confident(MAX_POINT_DIST_STD).map(|p| p.as_vec3()).collect();
+        if points.is_empty() {
+            return Err(Error::bad_file(
+                points_path,
+                format!("no semidense point is placed to within {MAX_POINT_DIST_STD} m"),
+            ));
+        }
+        Ok(Self::new(region, points, cfg))
     }
 
     /// Whether a Gaussian centred at `p` is the object's: inside the region
@@ -123,6 +158,9 @@ impl SessionConfig {
         }
     }
 }
+
+/// Semidense points placed less surely than this (metres) are left out.
+const MAX_POINT_DIST_STD: f64 = 0.05;
 
 /// How far past the region's faces a Gaussian still counts as the object's,
 /// as a fraction of the region's largest side.
@@ -236,6 +274,13 @@ pub fn run_session(
     control: &SessionControl,
     on_event: &(dyn Fn(SessionEvent) + Sync),
 ) -> Result<SessionOutcome> {
+    if cfg.room.is_some() && cfg.stage_two.method != StageTwoMethod::NodeTrack {
+        // Only node tracking renders over a backdrop.
+        return Err(Error::Config(format!(
+            "the {} preset's stage II does not train on recordings yet (the cpu preset does)",
+            cfg.stage_two.preset
+        )));
+    }
     let source = opened.source.describe();
     let ingest = Ingest::spawn(opened.source, opened.processor, opened.tagger, cfg.ingest.clone())
         .map_err(|e| Error::Other(format!("starting the ingestion thread: {e}")))?;
@@ -330,7 +375,7 @@ pub fn run_session(
             &format!("stages II and III start on {} motion and {} end-state frames", frames.motion, frames.after),
         );
         on_event(SessionEvent::StageTwoStarted { motion: frames.motion, end: frames.after });
-        let input = StageTwoInput {
+        let mut input = StageTwoInput {
             source: PathBuf::from(&source),
             motion: motion_views,
             test: reference.motion_test,
@@ -338,7 +383,6 @@ pub fn run_session(
             end,
             ground_truth: reference.ground_truth,
         };
-        let mut input = input;
         let mut start_state = static_dir.join("static.ply");
         if let Some(room) = &cfg.room {
             let object = static_dir.join("object.ply");

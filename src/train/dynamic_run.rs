@@ -258,6 +258,7 @@ fn run_dual_field(
         moving_gaussians: trainer.moving.gaussians.len(),
         wall_time_s: elapsed(&started),
         tracking_error: None,
+        tracking_error_at_discovery: None,
     };
     finish(run, control.viz, &trainer.static_set.gaussians, parts, &part_sets, summary)
 }
@@ -351,9 +352,11 @@ fn run_node_track(
         tracker.refit_end_poses(&end_views);
     }
     let motion_test_psnr = (!run.test.is_empty()).then(|| tracker.evaluate(run.test));
-    let errors = run.ground_truth.map(|gt| node_tracking_error(gt, &tracker)).transpose()?;
-    let (tracking_error, tracking_error_at_discovery) = match errors {
-        Some((end, free)) => (Some(end), (!free.is_empty()).then_some(free)),
+    let (tracking_error, tracking_error_at_discovery) = match run.ground_truth {
+        Some(gt) => {
+            let (end, free) = node_tracking_error(gt, &tracker)?;
+            (Some(end), (!free.is_empty()).then_some(free))
+        }
         None => (None, None),
     };
     let (parts, labels) = tracker.analyse();
@@ -381,7 +384,8 @@ fn run_node_track(
         motion_test_psnr,
         moving_gaussians: moving.len(),
         wall_time_s: elapsed(&started),
-        tracking_error: tracking_error.map(|end| (end, tracking_error_at_discovery)),
+        tracking_error,
+        tracking_error_at_discovery,
     };
     finish(run, control.viz, &base, parts, &part_sets, summary)
 }
@@ -395,7 +399,8 @@ fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<(Vec<Tra
     let times: Vec<f32> = (1..=10).map(|k| k as f32 / 10.0).collect();
     let seed = tracker.config.seed;
     let errors = tracking_errors(&gt, &tracker.node_centres, |t| positions(tracker.poses_at(t)), &times, seed);
-    let free_times: Vec<f32> = times.iter().copied().filter(|&t| tracker.free_poses_at(t).is_some()).collect();
+    let free_end = tracker.free_tracking_end();
+    let free_times: Vec<f32> = times.iter().copied().filter(|&t| free_end.is_some_and(|end| t <= end)).collect();
     let free = tracking_errors(
         &gt,
         &tracker.node_centres,
@@ -460,8 +465,8 @@ struct RunSummary {
     motion_test_psnr: Option<f32>,
     moving_gaussians: usize,
     wall_time_s: f64,
-    /// At the end, and (when recorded) at discovery.
-    tracking_error: Option<(Vec<TrackingError>, Option<Vec<TrackingError>>)>,
+    tracking_error: Option<Vec<TrackingError>>,
+    tracking_error_at_discovery: Option<Vec<TrackingError>>,
 }
 
 /// Write the twin (the static base and each part's Gaussians at t = 0), log the
@@ -514,8 +519,8 @@ fn finish(
             })
             .collect(),
         gt_report,
-        tracking_error: summary.tracking_error.as_ref().map(|(end, _)| end.clone()),
-        tracking_error_at_discovery: summary.tracking_error.and_then(|(_, free)| free),
+        tracking_error: summary.tracking_error,
+        tracking_error_at_discovery: summary.tracking_error_at_discovery,
     };
     let json = serde_json::to_vec_pretty(&metrics).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&run.out.join("metrics.json"), &json)?;

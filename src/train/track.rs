@@ -29,7 +29,7 @@ use super::views::TrainView;
 use crate::error::{Error, Result};
 use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::project::{project_one, ProjectionCamera};
-use crate::render::{backward, render, render_region};
+use crate::render::{backward, crop, region_rows, render, render_region};
 use crate::splat::GaussianSet;
 
 mod end_state;
@@ -500,11 +500,16 @@ impl NodeTracker {
         self.interpolated(&self.knots, t, NodePose::lerp)
     }
 
+    /// The time of the last knot free tracking had fitted when the parts were
+    /// found; None when no discovery was recorded.
+    pub fn free_tracking_end(&self) -> Option<f32> {
+        self.free_knots.len().checked_sub(1).map(|last| self.knot_time(last) + 1e-6)
+    }
+
     /// The node poses at time `t` as free tracking had them when the parts were
-    /// found; None past the last knot it fitted, or when no discovery was recorded.
+    /// found; None past [`NodeTracker::free_tracking_end`].
     pub fn free_poses_at(&self, t: f32) -> Option<Vec<NodePose>> {
-        let last = self.free_knots.len().checked_sub(1)?;
-        (t <= self.knot_time(last) + 1e-6).then(|| self.interpolated(&self.free_knots, t, NodePose::lerp))
+        (t <= self.free_tracking_end()?).then(|| self.interpolated(&self.free_knots, t, NodePose::lerp))
     }
 
     /// The node log gains at time `t` (linear between the fitted knots).
@@ -1728,19 +1733,6 @@ fn footprint(
                 (b[3] + 1 + margin).min(height),
             ]
         })
-}
-
-/// The pixels `region` = [x0, y0, x1, y1) of a row-major image `width` pixels
-/// wide with `channels` values per pixel.
-fn crop(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> Vec<f32> {
-    region_rows(image, width, channels, region).flatten().copied().collect()
-}
-
-/// The rows of `region` in such an image, top to bottom.
-fn region_rows(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> impl Iterator<Item = &[f32]> {
-    let [x0, y0, x1, y1] = region.map(|v| v as usize);
-    let w = width as usize;
-    (y0..y1).map(move |y| &image[channels * (y * w + x0)..channels * (y * w + x1)])
 }
 
 /// At most `n` of `items`, evenly spread over them (the first and the last included).

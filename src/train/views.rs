@@ -109,13 +109,13 @@ impl TrainView {
         Some(crate::train::loss::depth_loss_and_grad(rendered, target, weight))
     }
 
-    /// The target composited over `background`.
     /// How to render the object for this view: over its backdrop when it has one,
     /// else over `background`.
     pub fn render_options(&self, background: Vec3) -> RenderOptions {
         RenderOptions { background_image: self.backdrop.clone(), ..RenderOptions::uniform(background) }
     }
 
+    /// The target composited over `background`.
     pub fn target(&self, background: Vec3) -> Vec<f32> {
         match &self.alpha {
             None => self.premultiplied.clone(),
