@@ -254,4 +254,13 @@ fn aim_run_trains_on_a_recording_with_the_room_kept_out_of_the_object() {
     assert_eq!(object.len() + room, all.len());
     assert!(object.len() > 100 && room > 100, "{} object and {room} room Gaussians", object.len());
     assert!(run.join("dynamic/twin/articulation.json").is_file());
+    // The door, moved as the hand tracking saw the palm move (docs/session.md).
+    let gt = &report["stage_two"]["gt_report"];
+    let matched = gt["matched"].as_array().expect("matched parts");
+    assert_eq!(matched.len(), 1, "{gt}");
+    assert!(gt["extra"].as_array().expect("extra").is_empty(), "{gt}");
+    let door = &matched[0];
+    assert_eq!(door["kind"], "revolute", "{gt}");
+    assert!(door["axis_angle_deg"].as_f64().expect("axis") < 3.0, "{gt}");
+    assert!(door["part_motion"].as_f64().expect("motion") < 5.0, "{gt}");
 }

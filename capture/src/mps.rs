@@ -244,6 +244,46 @@ impl HandTracking {
     }
 }
 
+impl HandTracking {
+    /// World positions of the palms seen at `t_ns` (device clock) with at least
+    /// `min_confidence`: each hand's palm interpolated between the two hand samples
+    /// around `t_ns` (the nearer one alone when only it saw that hand), within
+    /// `max_gap_ns`, placed in the world by the device pose at its own time.
+    pub fn palms_in_world(
+        &self,
+        trajectory: &Trajectory,
+        t_ns: i64,
+        max_gap_ns: i64,
+        min_confidence: f64,
+    ) -> Vec<DVec3> {
+        let t_us = t_ns as f64 / 1000.0;
+        let j = self.samples.partition_point(|s| (s.t_us as f64) < t_us);
+        let near = |k: Option<usize>| {
+            k.and_then(|k| self.samples.get(k)).filter(|s| (s.t_us as f64 - t_us).abs() * 1000.0 <= max_gap_ns as f64)
+        };
+        let (before, after) = (near(j.checked_sub(1)), near(Some(j)));
+        let world = |s: &HandSample, h: &HandObservation| {
+            trajectory.interpolate(s.t_us * 1000, max_gap_ns).map(|p| p.transform_point(h.palm_device))
+        };
+        let confident = |s: Option<&HandSample>, side: fn(&HandSample) -> Option<HandObservation>| {
+            s.and_then(|s| {
+                side(s).filter(|h| h.confidence >= min_confidence).and_then(|h| world(s, &h)).map(|p| (s.t_us, p))
+            })
+        };
+        let sides: [fn(&HandSample) -> Option<HandObservation>; 2] = [|s| s.left, |s| s.right];
+        sides
+            .iter()
+            .filter_map(|&side| match (confident(before, side), confident(after, side)) {
+                (Some((ta, a)), Some((tb, b))) if tb > ta => Some(a.lerp(b, (t_us - ta as f64) / (tb - ta) as f64)),
+                (Some((ta, a)), Some((tb, b))) => {
+                    Some(if (t_us - ta as f64).abs() <= (tb as f64 - t_us).abs() { a } else { b })
+                }
+                (a, b) => a.or(b).map(|(_, p)| p),
+            })
+            .collect()
+    }
+}
+
 struct SideCols {
     conf: usize,
     wrist: [usize; 3],
@@ -278,18 +318,37 @@ impl SideCols {
 mod tests {
     use super::*;
 
+    const TRAJECTORY_HEADER: &str = "tracking_timestamp_us,tx_world_device,ty_world_device,tz_world_device,qx_world_device,qy_world_device,qz_world_device,qw_world_device\n";
+
     #[test]
     fn trajectory_interpolates_linearly_and_by_slerp() {
-        let text = "tracking_timestamp_us,tx_world_device,ty_world_device,tz_world_device,qx_world_device,qy_world_device,qz_world_device,qw_world_device\n\
-                    1000,0,0,0,0,0,0,1\n\
-                    2000,2,0,0,0,0,0.7071067811865476,0.7071067811865476\n";
-        let t = Trajectory::parse(Path::new("t.csv"), text).unwrap();
+        let text =
+            format!("{TRAJECTORY_HEADER}1000,0,0,0,0,0,0,1\n2000,2,0,0,0,0,0.7071067811865476,0.7071067811865476\n");
+        let t = Trajectory::parse(Path::new("t.csv"), &text).unwrap();
         let p = t.interpolate(1_500_000, 0).unwrap();
         assert!((p.translation - DVec3::new(1.0, 0.0, 0.0)).length() < 1e-12);
         let angle = p.rotation.angle_between(DQuat::IDENTITY);
         assert!((angle - std::f64::consts::FRAC_PI_4).abs() < 1e-9, "{angle}");
         assert!(t.interpolate(3_000_000, 0).is_none());
         assert!(t.interpolate(2_000_500, 1000).is_some());
+    }
+
+    #[test]
+    fn palms_are_placed_in_the_world_between_hand_samples() {
+        let trajectory = format!("{TRAJECTORY_HEADER}1000,0,0,0,0,0,0,1\n2000,2,0,0,0,0,0,1\n");
+        let trajectory = Trajectory::parse(Path::new("t.csv"), &trajectory).unwrap();
+        let hands = "tracking_timestamp_us,left_tracking_confidence,tx_left_wrist_device,ty_left_wrist_device,tz_left_wrist_device,tx_left_palm_device,ty_left_palm_device,tz_left_palm_device,right_tracking_confidence,tx_right_wrist_device,ty_right_wrist_device,tz_right_wrist_device,tx_right_palm_device,ty_right_palm_device,tz_right_palm_device\n\
+                     1000,0.2,0,0,0,5,5,5,0.9,0,0,0,0,0,1\n\
+                     2000,0.2,0,0,0,5,5,5,0.9,0,0,0,0,0,3\n";
+        let hands = HandTracking::parse(Path::new("h.csv"), hands).unwrap();
+        // Device at x = 0 then 2, palm 1 then 3 m ahead of it: halfway, (1, 0, 2).
+        let palms = hands.palms_in_world(&trajectory, 1_500_000, 1_000_000, 0.5);
+        assert_eq!(palms.len(), 1, "the unconfident left hand is left out: {palms:?}");
+        assert!((palms[0] - DVec3::new(1.0, 0.0, 2.0)).length() < 1e-9, "{palms:?}");
+        let near_the_end = hands.palms_in_world(&trajectory, 2_050_000, 100_000, 0.5);
+        assert!((near_the_end[0] - DVec3::new(2.0, 0.0, 3.0)).length() < 1e-9, "{near_the_end:?}");
+        assert!(hands.palms_in_world(&trajectory, 2_500_000, 100_000, 0.5).is_empty(), "no sample within the gap");
+        assert_eq!(hands.palms_in_world(&trajectory, 1_500_000, 1_000_000, 0.1).len(), 2);
     }
 
     #[test]

@@ -57,6 +57,10 @@ pub enum Capture {
         common: Common,
         #[arg(long)]
         out: PathBuf,
+        /// Also write the crop's camera as `aim render` reads it (to compare a
+        /// model rendered from it with the crop).
+        #[arg(long)]
+        camera_out: Option<PathBuf>,
     },
 }
 
@@ -170,7 +174,7 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
                 report.stats.unposed
             );
         }
-        Capture::Crop { recording, frame, crop_size, common, out } => {
+        Capture::Crop { recording, frame, crop_size, common, out, camera_out } => {
             let opts = common.options(TRAIN_UNDISTORT)?;
             let f = cropped_frame(&recording, frame, &opts, crop_size, aim_capture::crop::DEFAULT_MARGIN)?;
             let mut bytes = Vec::new();
@@ -178,6 +182,11 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
                 .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
                 .context("encoding PNG")?;
             aim_capture::io::write_atomic(&out, &bytes)?;
+            if let Some(path) = &camera_out {
+                let camera = aim::camera::Camera::new(f.intrinsics, f.world_to_camera);
+                let json = serde_json::to_vec_pretty(&aim::camera::CameraFile::from_camera(&camera))?;
+                aim_capture::io::write_atomic(path, &json)?;
+            }
             let k = f.intrinsics;
             println!(
                 "wrote {} ({} x {}, f = ({:.1}, {:.1}), c = ({:.1}, {:.1}), {:?} at {:.3} s)",

@@ -15,7 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use aim_capture::crop::ObjectCrop;
 use aim_capture::detect::{MotionEvent, ObjectRegion};
 use aim_capture::ingest::{motion_time, Ingest, IngestConfig, IngestStats, Message};
-use aim_capture::mps::SemidensePoints;
+use aim_capture::mps::{HandTracking, SemidensePoints, Trajectory};
 use aim_capture::recording::Opened;
 use aim_capture::{Frame, Phase};
 use serde::Serialize;
@@ -54,7 +54,17 @@ pub struct RoomSetup {
     pub crop: ObjectCrop,
     /// Stage I's initial points (the recording's MPS semidense points).
     pub points: crate::splat::ply::PointCloud,
+    /// The recording's hand tracking and device poses, when it has them: each
+    /// motion frame carries the palms seen at its time (the contact term of
+    /// stage II's node tracking).
+    pub hands: Option<(HandTracking, Trajectory)>,
 }
+
+/// Hand samples this far from a frame's time are not its palms (MPS hand
+/// tracking runs at 30-60 Hz).
+const PALM_MAX_GAP_NS: i64 = 50_000_000;
+/// Hands tracked with less confidence are not placed.
+const PALM_MIN_CONFIDENCE: f64 = 0.5;
 
 impl RoomSetup {
     /// Crops of `region` at the trainers' resolution, every pixel kept.
@@ -62,18 +72,30 @@ impl RoomSetup {
         let size = [cfg.stage_one.resolution, cfg.stage_two.resolution].into_iter().max().unwrap_or(0);
         let size = if size == 0 { CROP_SIZE_AS_RECORDED } else { size };
         let crop = ObjectCrop { region, size, margin: aim_capture::crop::DEFAULT_MARGIN, mask_outside: false };
-        RoomSetup { crop, points: crate::splat::ply::PointCloud { points, colors: None } }
+        RoomSetup { crop, points: crate::splat::ply::PointCloud { points, colors: None }, hands: None }
+    }
+
+    /// World positions of the palms seen at `timestamp_s` (device clock).
+    fn palms_at(&self, timestamp_s: f64) -> Vec<glam::Vec3> {
+        self.hands.as_ref().map_or_else(Vec::new, |(hands, trajectory)| {
+            let t_ns = (timestamp_s * 1e9).round() as i64;
+            hands
+                .palms_in_world(trajectory, t_ns, PALM_MAX_GAP_NS, PALM_MIN_CONFIDENCE)
+                .into_iter()
+                .map(|p| p.as_vec3())
+                .collect()
+        })
     }
 
     /// The setup of the recording `input` as opened: its poses, object region and
     /// SLAM points are all needed, and each missing one is named.
     pub fn for_recording(input: &Path, opened: &Opened, cfg: &SessionConfig) -> Result<Self> {
-        if opened.trajectory_path.is_none() {
+        let Some(trajectory_path) = &opened.trajectory_path else {
             return Err(Error::bad_file(
                 input,
                 "a recording needs its camera poses (an MPS closed_loop_trajectory.csv beside it, or --trajectory)",
             ));
-        }
+        };
         let Some(region) = opened.region else {
             return Err(Error::bad_file(
                 input,
@@ -96,7 +118,11 @@ impl RoomSetup {
                 format!("no semidense point is placed to within {MAX_POINT_DIST_STD} m"),
             ));
         }
-        Ok(Self::new(region, points, cfg))
+        let hands = match &opened.hands_path {
+            Some(path) => Some((HandTracking::load(path)?, Trajectory::load(trajectory_path)?)),
+            None => None,
+        };
+        Ok(Self { hands, ..Self::new(region, points, cfg) })
     }
 
     /// Whether a Gaussian centred at `p` is the object's: inside the region
@@ -345,9 +371,14 @@ pub fn run_session(
                     (views, outcome)
                 }));
             }
-            let view = TrainView::from_frame(&frame, cfg.stage_two.resolution)?;
+            let mut view = TrainView::from_frame(&frame, cfg.stage_two.resolution)?;
             match frame.phase {
-                Phase::Motion => motion.push(frame.timestamp_s, view),
+                Phase::Motion => {
+                    if let Some(room) = &cfg.room {
+                        view.palms = room.palms_at(frame.timestamp_s);
+                    }
+                    motion.push(frame.timestamp_s, view)
+                }
                 _ => after.push(frame.timestamp_s, view),
             }
         }
@@ -470,6 +501,7 @@ mod tests {
             time: None,
             depth: None,
             backdrop: None,
+            palms: Vec::new(),
         }
     }
 

@@ -293,7 +293,9 @@ fn run_node_track(
     } else {
         // The scan's cameras show where the start state's hidden volume is (for revealed content).
         let scan: Vec<_> = scan.iter().map(|v| v.camera).collect();
-        (NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?, &scan)?, 0.0)
+        let mut tracker = NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?, &scan)?;
+        tracker.take_hold(&frames, &end_views);
+        (tracker, 0.0)
     };
     let started = Instant::now();
     let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();

@@ -32,7 +32,10 @@ use crate::render::project::{project_one, ProjectionCamera};
 use crate::render::{backward, crop, region_rows, render, render_region};
 use crate::splat::GaussianSet;
 
+mod contact;
 mod end_state;
+
+pub use contact::HandContact;
 
 /// Settings of the node tracker.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -134,6 +137,17 @@ pub struct TrackConfig {
     /// I's `depth_weight`), where the dataset has depth maps; 0 = RGB only (the
     /// default: an Aria RGB camera has no depth).
     pub depth_weight: f32,
+    /// Follow the hand (`track::contact`), on recordings whose frames carry the
+    /// hand tracking's palms: when a palm touches the start state and then
+    /// traces an arc or a line, the part it moved is tracked with that motion.
+    /// The palm holding a part is seen in 3D by the glasses' hand tracking,
+    /// while the frames hardly see depth: a door swinging towards the wearer
+    /// moves mostly along the line of sight, and shows a face the start state
+    /// never saw.
+    pub follow_hand: bool,
+    /// A palm this close (metres) to the start state's Gaussians at a motion frame
+    /// touches the object there: the first one fixes the contact point.
+    pub hand_reach: f32,
 }
 
 impl Default for TrackConfig {
@@ -164,6 +178,8 @@ impl Default for TrackConfig {
             revealed_gaussians: 0,
             refit_from_start: false,
             depth_weight: 0.0,
+            follow_hand: true,
+            hand_reach: 0.05,
         }
     }
 }
@@ -189,6 +205,7 @@ impl TrackConfig {
             ("track.lr_translation", self.lr_translation),
             ("track.lr_rotation", self.lr_rotation),
             ("track.arap_scale", self.arap_scale),
+            ("track.hand_reach", self.hand_reach),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{k} must be a positive number, got {v}"));
@@ -312,6 +329,9 @@ pub struct NodeTracker {
     /// discovery reads. Not checkpointed (empty after a resume past discovery).
     #[serde(skip)]
     pub free_knots: Vec<Vec<NodePose>>,
+    /// Where the hand took hold of the object, when the frames carry palms.
+    #[serde(default)]
+    pub contact: Option<HandContact>,
 }
 
 /// The parts found at the end of free tracking, tracked rigidly from then on.
@@ -377,6 +397,9 @@ impl TrackedParts {
 
 /// Random streams: the training backgrounds and the frames drawn in a segment.
 const STREAM_BACKGROUND: u64 = 21;
+/// A piece of the part the hand moved stays in it only when it explains the
+/// frames better moving than at rest by more than this (relative to the loss).
+const HELD_PIECE_MARGIN: f32 = 1e-3;
 const STREAM_FRAMES: u64 = 22;
 const STREAM_END_VIEWS: u64 = 23;
 
@@ -422,6 +445,7 @@ impl NodeTracker {
         Ok(Self {
             revealed,
             free_knots: Vec::new(),
+            contact: None,
             arap_scale: t.arap_scale * median_spacing,
             object_size: size,
             iterations_per_segment: (config.iterations / Self::planned_fits(t) as u32).max(1),
@@ -437,6 +461,74 @@ impl NodeTracker {
             edges,
             config,
         })
+    }
+
+    /// Find where the hand takes hold of the object in the motion `frames` (those
+    /// whose palms the capture's hand tracking saw) and the motion its palm then
+    /// traced (`track.follow_hand`). With a motion, the part it moved is found
+    /// before any tracking: every node is given that motion, pieces that explain
+    /// the motion frames and the end state better at rest go back to the base
+    /// (`clean_parts`, twice: the second pass, on a cleaner scene, with smaller
+    /// pieces), and what is left is tracked from the start as one part that
+    /// moves as the palm did.
+    pub fn take_hold(&mut self, frames: &[TrainView], end_views: &[TrainView]) {
+        let t = &self.config.track;
+        self.contact = t
+            .follow_hand
+            .then(|| HandContact::find(frames, &self.gaussians, &self.node_centres, t.hand_reach))
+            .flatten();
+        let Some(contact) = self.contact.clone() else { return };
+        tracing::info!(time = contact.time, point = ?contact.point, "stage II: the hand takes hold");
+        let Some(motion) = &contact.motion else { return };
+        if self.articulation.is_some() || self.segments_done > 0 {
+            return;
+        }
+        let amount = motion.samples.iter().map(|s| s.1).fold(0.0f32, |m, a| if a.abs() > m.abs() { a } else { m });
+        tracing::info!(
+            kind = ?motion.kind,
+            axis = ?motion.axis,
+            origin = ?motion.origin,
+            amount,
+            residual = motion.residual,
+            palms = motion.samples.len(),
+            "stage II: the palm's motion"
+        );
+        let n = self.node_centres.len();
+        let all = vec![1; n];
+        let centre = self.gaussians_labelled(&all, 1).iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>()
+            / self.gaussians.len().max(1) as f32;
+        // Judged on the frames up to discovery, as the free tracking's parts are:
+        // later, a door opened towards the wearer shows the face the start state lacks.
+        let knots = self.knot_at(self.config.track.discovery_time) + 1;
+        let poses: Vec<Vec<NodePose>> =
+            (0..knots).map(|k| vec![motion.pose_about(centre, self.knot_time(k))]).collect();
+        self.knots = vec![vec![NodePose::IDENTITY; n]; knots];
+        self.gains = vec![vec![0.0; n]; knots];
+        self.set_articulation(TrackedParts { node_part: all, centres: vec![centre], poses });
+        self.clean_parts_with(frames, end_views, HELD_PIECE_MARGIN);
+        self.clean_parts_with(frames, end_views, HELD_PIECE_MARGIN);
+        let node_part = self.articulation.take().map(|a| a.node_part).unwrap_or_default();
+        self.knots.truncate(1);
+        self.gains.truncate(1);
+        let moving = node_part.iter().filter(|&&p| p > 0).count();
+        tracing::info!(nodes = moving, of = n, "stage II: the part the hand moved");
+        if moving > 0 {
+            let members = self.gaussians_labelled(&node_part, 1);
+            let centre = members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
+            self.articulation =
+                Some(TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]] });
+        }
+    }
+
+    /// The part the hand held and moved (0-based), when the palm traced a motion:
+    /// its motion and existence are what the hand tracking measured, so it moves
+    /// only as the palm did (no photometric pose fit: the frames show faces of it
+    /// the start state never saw), and the tests that ask whether a part exists
+    /// (the merges, the end-state check) and the end-pose search pass it by; its
+    /// pieces are still cleaned.
+    fn held_part(&self) -> Option<usize> {
+        let contact = self.contact.as_ref().filter(|c| c.motion.is_some())?;
+        self.articulation.as_ref()?.node_part[contact.node as usize].checked_sub(1)
     }
 
     /// Segment fits of a whole run: one per knot after the start state, plus the
@@ -573,8 +665,13 @@ impl NodeTracker {
         for (p, _) in next.iter_mut().zip(&self.frozen).filter(|(_, f)| **f) {
             *p = NodePose::IDENTITY;
         }
+        let (t_next, held) = (self.knot_time(j), self.held_part());
         if let Some(parts) = &mut self.articulation {
-            let part_next = extrapolate(&parts.poses);
+            let mut part_next = extrapolate(&parts.poses);
+            // The part the hand holds is where the palm's motion puts it.
+            if let (Some(p), Some(motion)) = (held, self.contact.as_ref().and_then(|c| c.motion.as_ref())) {
+                part_next[p] = motion.pose_about(parts.centres[p], t_next);
+            }
             next = parts.node_poses(&self.node_centres, &part_next);
             parts.poses.push(part_next);
         }
@@ -643,6 +740,9 @@ impl NodeTracker {
             self.add_arap(&poses, &mut at_t);
             if let Some(parts) = &self.articulation {
                 at_t = parts.part_gradient(&self.node_centres, &at_t, &parts.poses[j]);
+                if let Some(p) = held {
+                    at_t[6 * p..6 * p + 6].fill(0.0);
+                }
             }
             // The pose at t blends knots k and k + 1: each gets its share of the gradient.
             let n6 = at_t.len();
@@ -1056,7 +1156,8 @@ impl NodeTracker {
         let counts = self.binding_counts();
         let size =
             |np: &[usize], p: usize| np.iter().zip(&counts).filter(|(l, _)| **l == p).map(|(_, c)| c).sum::<usize>();
-        let mut order: Vec<usize> = (1..=parts.centres.len()).collect();
+        let held = self.held_part().map(|p| p + 1);
+        let mut order: Vec<usize> = (1..=parts.centres.len()).filter(|&p| Some(p) != held).collect();
         order.sort_by_key(|&p| size(&node_part, p));
         for q in order {
             let best = (0..=parts.centres.len())
@@ -1135,7 +1236,7 @@ impl NodeTracker {
             // image is rendered only where the loss is read (the tail).
             let in_tail = i >= iterations - tail;
             let region = if in_tail { Some([0, 0, width, height]) } else { self.parts_region(&g, view) };
-            let grad = match region {
+            let mut grad = match region {
                 Some(region) => {
                     let (grad, l) = self.end_pose_gradient(&poses, &g, view, bg, region);
                     if in_tail {
@@ -1146,6 +1247,12 @@ impl NodeTracker {
                 // No part in view: no gradient (the optimiser still steps, as it would).
                 None => vec![0.0; 6 * n_parts],
             };
+            // The part the hand held ends where the hand let go of it: the end
+            // state shows the face of it the start state never saw (a door
+            // opened towards the wearer), which would pull it anywhere.
+            if let Some(p) = self.held_part() {
+                grad[6 * p..6 * p + 6].fill(0.0);
+            }
             let step = optimizer.step(&grad, &[c.track.lr_rotation, c.track.lr_translation * self.object_size]);
             let parts = self.articulation.as_mut().expect("parts");
             apply_step(&mut parts.poses[last], &step);
@@ -1255,7 +1362,8 @@ impl NodeTracker {
     pub fn search_end_poses(&mut self, end_views: &[TrainView]) -> usize {
         let parts = self.articulation.as_ref().map_or(0, |a| a.centres.len());
         let mut changed = 0;
-        for p in 0..parts {
+        let held = self.held_part();
+        for p in (0..parts).filter(|&p| Some(p) != held) {
             changed += usize::from(self.search_part_end_pose(p, end_views, false));
         }
         changed
@@ -1396,6 +1504,15 @@ impl NodeTracker {
     /// the storage drawer's Gaussians were the cabinet's front frame), and the
     /// rigid fit of a part carrying them tilts its axis. Returns the chunks moved.
     pub fn clean_parts(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
+        self.clean_parts_with(frames, end_views, 0.0)
+    }
+
+    /// `clean_parts`, a chunk going to the base also when it explains the views
+    /// at rest within `base_margin` (relative) of the loss with it moving: a part
+    /// seeded with every node, as the hand's is, keeps only what the views show
+    /// moving (a body's side wall the opened door hides changes the loss by a
+    /// few parts in 10^5 either way; a door's pieces by 10^-3 to 10^-2).
+    fn clean_parts_with(&mut self, frames: &[TrainView], end_views: &[TrainView], base_margin: f32) -> usize {
         const CHUNK_NODES: usize = 16;
         const MAX_CHUNKS: usize = 24;
         let Some(parts) = self.articulation.clone() else {
@@ -1408,7 +1525,9 @@ impl NodeTracker {
         let mut node_part = parts.node_part.clone();
         let mut current = self.articulated_loss(&parts, &node_part, &check);
         let mut moved = 0;
-        for p in 1..=parts.centres.len() {
+        // The held part's pieces were judged when the hand took hold (`take_hold`).
+        let held = if self.segments_done > 0 { self.held_part().map(|p| p + 1) } else { None };
+        for p in (1..=parts.centres.len()).filter(|&p| Some(p) != held) {
             let nodes: Vec<usize> = (0..node_part.len()).filter(|&k| node_part[k] == p).collect();
             let chunks = (nodes.len() / CHUNK_NODES).clamp(1, MAX_CHUNKS);
             for chunk in self.spatial_chunks(&nodes, chunks) {
@@ -1434,7 +1553,8 @@ impl NodeTracker {
                 // Strictly better only: a piece is too small for a tolerance on the
                 // whole frames' loss (1 % accepted nearly every piece, one after another).
                 if let Some((q, trial, loss)) = best {
-                    if loss < current {
+                    let margin = if q == 0 { base_margin } else { 0.0 };
+                    if loss < current * (1.0 + margin) {
                         tracing::debug!(
                             part = p,
                             into = q,
@@ -2016,6 +2136,7 @@ mod tests {
             time: Some(1.0),
             depth: None,
             backdrop: None,
+            palms: Vec::new(),
         }
     }
 

@@ -30,6 +30,10 @@ pub struct TrainView {
     /// fixed scene rather than one colour: the room of a raw recording,
     /// rendered from the room's own Gaussians.
     pub backdrop: Option<Arc<[f32]>>,
+    /// World positions of the palms the capture's hand tracking saw at this
+    /// frame (a recording's MPS hands; empty when none): the hand holding a part
+    /// tells where it is in 3D (`train::contact`).
+    pub palms: Vec<Vec3>,
 }
 
 impl TrainView {
@@ -90,6 +94,7 @@ impl TrainView {
             time: frame.motion_time,
             depth,
             backdrop: None,
+            palms: Vec::new(),
         })
     }
 

@@ -308,7 +308,8 @@ impl NodeTracker {
         base.sort_by(f32::total_cmp);
         let threshold = residual_threshold(&base);
         let mut node_part = parts.node_part.clone();
-        for p in 0..parts.centres.len() {
+        let held = self.held_part();
+        for p in (0..parts.centres.len()).filter(|&p| Some(p) != held) {
             let nodes = parts.node_part.iter().filter(|&&l| l == p + 1).count();
             let (seen, median) = self.residual_where_moved(p, &views);
             // The test a part found on the end state passes (`looks_right_where_moved`).
@@ -452,6 +453,7 @@ mod tests {
                     time: Some(time),
                     depth: None,
                     backdrop: None,
+                    palms: Vec::new(),
                 }
             })
             .collect()
