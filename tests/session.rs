@@ -264,3 +264,40 @@ fn aim_run_trains_on_a_recording_with_the_room_kept_out_of_the_object() {
     assert!(door["axis_angle_deg"].as_f64().expect("axis") < 3.0, "{gt}");
     assert!(door["part_motion"].as_f64().expect("motion") < 5.0, "{gt}");
 }
+
+#[test]
+fn aim_run_live_paces_the_recording_and_reports_how_far_the_twin_lags() {
+    let root = tmp("recording-live");
+    let rec = root.join("recording");
+    let small =
+        RecordingConfig { resolution: 128, fps: 6.0, scan_s: 1.5, motion_s: 1.0, after_s: 1.0, ..Default::default() };
+    let summary = write_recording(&aim::synth::object("fridge").expect("object"), &small, &rec).expect("written");
+    let run = root.join("run");
+    let out = aim()
+        .arg("run")
+        .arg(&rec)
+        .arg("--out")
+        .arg(&run)
+        .arg("--live")
+        .args(["--static-iterations", "60", "--dynamic-iterations", "30"])
+        .output()
+        .expect("runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&read(&run.join("session.json"))).expect("json");
+    let timing = &report["timing"];
+    let wall = timing["wall_s"].as_f64().expect("wall time");
+    let lag = timing["hand_out_to_twin_s"].as_f64().expect("a hand-out");
+    // Paced: the frames arrive over the recording's own length, so the session
+    // cannot end sooner; the twin follows the hand-out, within the session.
+    let recorded = (summary.frames - 1) as f64 / summary.fps;
+    assert!(wall >= recorded, "{wall} s for {recorded} s of frames: {timing}");
+    assert!(lag > 0.0 && lag < wall, "{timing}");
+    // Every frame the ingestion delivered and did not drop reached a phase (or was
+    // cut away for want of the object in view).
+    let count = |v: &serde_json::Value| v.as_u64().expect("a count");
+    let ingest = &report["ingest"];
+    let frames = &report["frames"];
+    let used = count(&frames["scan"]) + count(&frames["motion"]) + count(&frames["after"]);
+    let reached = used + count(&report["frames_without_object"]);
+    assert_eq!(reached, count(&ingest["delivered"]) - count(&ingest["dropped"]), "{ingest} {frames}");
+}

@@ -40,6 +40,12 @@ pub struct Args {
     /// Stage II iterations (default: the preset's).
     #[arg(long)]
     pub dynamic_iterations: Option<u32>,
+    /// Emulate a live capture: frames are handed over at their recorded rate,
+    /// the oldest buffered frame is dropped when training falls behind (counted
+    /// in session.json), and the time from hand-out to the twin is reported.
+    /// Without it, a replay never drops a frame.
+    #[arg(long)]
+    pub live: bool,
     #[command(flatten)]
     pub rerun: super::train_static::RerunArgs,
     /// A recording's files and detector (ignored for datasets).
@@ -56,6 +62,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         StaticConfig::resolve(args.static_config.as_deref(), &args.preset, args.seed, args.static_iterations)?;
     cfg.stage_two =
         DynamicConfig::resolve(args.dynamic_config.as_deref(), &args.preset, args.seed, args.dynamic_iterations)?;
+    if args.live {
+        cfg.ingest.policy = aim_capture::ingest::Policy::Live;
+        cfg.ingest.realtime = true;
+    }
     let (opened, reference) = match dataset_layout(&args.input) {
         Some(layout) => {
             let reference =
@@ -98,6 +108,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 report.frames.after
             );
             super::train_dynamic::print_joints(&parts, report.stage_two.gt_report.as_ref());
+            let t = &report.timing;
+            println!(
+                "{:.1} s in all; the twin {} after hand-out; {} frame(s) dropped",
+                t.wall_s,
+                t.hand_out_to_twin_s.map_or("(no hand-out)".into(), |s| format!("{s:.1} s")),
+                report.ingest.dropped
+            );
             println!(
                 "wrote {} and the twin in {}",
                 args.out.join("session.json").display(),

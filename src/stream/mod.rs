@@ -242,6 +242,17 @@ pub struct SessionReport {
     pub ingest: IngestStats,
     pub stage_one: StaticMetrics,
     pub stage_two: DynamicMetrics,
+    pub timing: SessionTiming,
+}
+
+/// How long the session took, on the wall clock.
+#[derive(Clone, Debug, Serialize)]
+pub struct SessionTiming {
+    /// From the start of the session to the twin written.
+    pub wall_s: f64,
+    /// From the moment the hand-out event arrived to the twin written: how far
+    /// the reconstruction lags behind the capture (`aim run --live`).
+    pub hand_out_to_twin_s: Option<f64>,
 }
 
 /// How a session ended.
@@ -308,6 +319,7 @@ pub fn run_session(
         )));
     }
     let source = opened.source.describe();
+    let started = std::time::Instant::now();
     let ingest = Ingest::spawn(opened.source, opened.processor, opened.tagger, cfg.ingest.clone())
         .map_err(|e| Error::Other(format!("starting the ingestion thread: {e}")))?;
     let static_dir = out.join("static");
@@ -318,6 +330,7 @@ pub fn run_session(
         let mut events = Vec::new();
         let mut stage_one = None;
         let mut frames_without_object = 0;
+        let mut hand_out_at = None;
         for message in &ingest {
             if control.interrupt.load(Ordering::SeqCst) {
                 break;
@@ -325,6 +338,9 @@ pub fn run_session(
             let frame = match message {
                 Message::Frame(f) => f,
                 Message::Event(e) => {
+                    if matches!(e, MotionEvent::HandOut { .. }) {
+                        hand_out_at = Some(std::time::Instant::now());
+                    }
                     control.viz.text("session/events", &format!("{e:?}"));
                     on_event(SessionEvent::Window(e));
                     events.push(e);
@@ -443,6 +459,10 @@ pub fn run_session(
             ingest: stats,
             stage_one: stage_one_metrics,
             stage_two: *metrics,
+            timing: SessionTiming {
+                wall_s: started.elapsed().as_secs_f64(),
+                hand_out_to_twin_s: hand_out_at.map(|t: std::time::Instant| t.elapsed().as_secs_f64()),
+            },
         };
         let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Other(e.to_string()))?;
         write_atomic(&out.join("session.json"), &json)?;

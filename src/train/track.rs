@@ -513,6 +513,18 @@ impl NodeTracker {
         let moving = node_part.iter().filter(|&&p| p > 0).count();
         tracing::info!(nodes = moving, of = n, "stage II: the part the hand moved");
         if moving > 0 {
+            // The held part is the one this node is in: the part's node nearest the touch
+            // (the very nearest may be the base's, a handle too thin for a node of its own).
+            let held = (0..n)
+                .filter(|&k| node_part[k] > 0)
+                .min_by(|&a, &b| {
+                    let d = |k: usize| self.node_centres[k].distance(contact.point);
+                    d(a).total_cmp(&d(b))
+                })
+                .expect("a moving node");
+            if let Some(c) = &mut self.contact {
+                c.node = held as u32;
+            }
             let members = self.gaussians_labelled(&node_part, 1);
             let centre = members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
             self.articulation =

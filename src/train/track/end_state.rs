@@ -35,8 +35,15 @@ impl NodeTracker {
     /// were added or grown. Needs end-state views and the global search (`search_step`).
     /// `returned`: nodes of tracked parts dropped back to the base
     /// (`drop_parts_that_look_wrong`), left out of the base's residual statistics.
+    /// Not when the hand held a part: one interaction moves the part the hand
+    /// holds, and what else the end state shows differently is content the start
+    /// state lacked (an oven's inside, measured: an 11-degree extra part).
     pub fn discover_on_end_state(&mut self, frames: &[TrainView], end_views: &[TrainView], returned: &[bool]) -> usize {
-        if end_views.is_empty() || self.config.track.search_step <= 0.0 || self.config.track.end_iterations == 0 {
+        if end_views.is_empty()
+            || self.config.track.search_step <= 0.0
+            || self.config.track.end_iterations == 0
+            || self.held_part().is_some()
+        {
             return 0;
         }
         let last = self.knots.len() - 1;
