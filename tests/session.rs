@@ -10,7 +10,7 @@ use std::sync::atomic::AtomicBool;
 
 use aim::stream::{run_session, Reference, SessionConfig, SessionControl, SessionOutcome};
 use aim::synth::dataset::{write_dataset, SynthConfig};
-use aim::synth::recording::{write_recording, RecordingConfig};
+use aim::synth::recording::{write_recording, RecordingConfig, RecordingSummary};
 use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput};
 use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
 use aim::train::views::load_phase_views;
@@ -217,24 +217,30 @@ fn aim_run_logs_the_session_to_rerun() {
 /// the object region, stage I learns the object and the room around it from the
 /// SLAM points, the object is what lies in the region, and stages II and III run
 /// on it with the room as each view's backdrop.
-#[test]
-fn aim_run_trains_on_a_recording_with_the_room_kept_out_of_the_object() {
-    let root = tmp("recording-run");
+/// A small synthetic fridge recording (`resolution` px, 6 fps, 1.5 s of scan,
+/// 1 s of motion, 1 s after) through `aim run` with `args`: the recording's
+/// folder and summary, the run's folder and its session.json.
+fn run_on_small_recording(
+    name: &str,
+    resolution: u32,
+    args: &[&str],
+) -> (PathBuf, RecordingSummary, PathBuf, serde_json::Value) {
+    let root = tmp(name);
     let rec = root.join("recording");
     let small =
-        RecordingConfig { resolution: 256, fps: 6.0, scan_s: 1.5, motion_s: 1.0, after_s: 1.0, ..Default::default() };
-    write_recording(&aim::synth::object("fridge").expect("object"), &small, &rec).expect("written");
+        RecordingConfig { resolution, fps: 6.0, scan_s: 1.5, motion_s: 1.0, after_s: 1.0, ..Default::default() };
+    let summary = write_recording(&aim::synth::object("fridge").expect("object"), &small, &rec).expect("written");
     let run = root.join("run");
-    let out = aim()
-        .arg("run")
-        .arg(&rec)
-        .arg("--out")
-        .arg(&run)
-        .args(["--static-iterations", "200", "--dynamic-iterations", "60"])
-        .output()
-        .expect("runs");
+    let out = aim().arg("run").arg(&rec).arg("--out").arg(&run).args(args).output().expect("runs");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_slice(&read(&run.join("session.json"))).expect("json");
+    (rec, summary, run, report)
+}
+
+#[test]
+fn aim_run_trains_on_a_recording_with_the_room_kept_out_of_the_object() {
+    let (rec, _, run, report) =
+        run_on_small_recording("recording-run", 256, &["--static-iterations", "200", "--dynamic-iterations", "60"]);
     for phase in ["scan", "motion", "after"] {
         assert!(report["frames"][phase].as_u64().expect("count") > 0, "no {phase} frames: {report}");
     }
@@ -267,23 +273,8 @@ fn aim_run_trains_on_a_recording_with_the_room_kept_out_of_the_object() {
 
 #[test]
 fn aim_run_live_paces_the_recording_and_reports_how_far_the_twin_lags() {
-    let root = tmp("recording-live");
-    let rec = root.join("recording");
-    let small =
-        RecordingConfig { resolution: 128, fps: 6.0, scan_s: 1.5, motion_s: 1.0, after_s: 1.0, ..Default::default() };
-    let summary = write_recording(&aim::synth::object("fridge").expect("object"), &small, &rec).expect("written");
-    let run = root.join("run");
-    let out = aim()
-        .arg("run")
-        .arg(&rec)
-        .arg("--out")
-        .arg(&run)
-        .arg("--live")
-        .args(["--static-iterations", "60", "--dynamic-iterations", "30"])
-        .output()
-        .expect("runs");
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&read(&run.join("session.json"))).expect("json");
+    let live = ["--live", "--static-iterations", "60", "--dynamic-iterations", "30"];
+    let (_, summary, _, report) = run_on_small_recording("recording-live", 128, &live);
     let timing = &report["timing"];
     let wall = timing["wall_s"].as_f64().expect("wall time");
     let lag = timing["hand_out_to_twin_s"].as_f64().expect("a hand-out");
