@@ -707,7 +707,11 @@ impl NodeTracker {
         let per_segment = self.iterations_per_segment;
         let tail = (per_segment / 10).max(1);
         let (mut loss, mut quality) = (0.0, 0.0);
-        for i in 0..per_segment {
+        // The held part alone moves as the palm did: nothing to fit, only the
+        // tail's iterations run, for the segment's loss and PSNR.
+        let only_held = held.is_some() && self.articulation.as_ref().is_some_and(|a| a.centres.len() == 1);
+        let first = if only_held && c.track.lr_gain == 0.0 { per_segment - tail } else { 0 };
+        for i in first..per_segment {
             // The window's end moves from the previous knot to this one over the first
             // half of the segment, so the new knot is pulled out gradually: texture
             // only guides a pose within about a pixel of the truth.
