@@ -1,0 +1,71 @@
+//! What the examples share: the built-in synthetic recording, and a session on
+//! a recording set up as `aim run RECORDING` sets it up.
+
+use std::path::{Path, PathBuf};
+
+use aim::stream::{run_session, Reference, RoomSetup, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
+use aim_capture::recording::{open_recording, RecordingOptions};
+use aim_capture::undistort::UndistortConfig;
+
+/// The recording named as the first argument, or the built-in synthetic fridge
+/// recording (`aim synth-recording fridge`) written under `scratch`; the output
+/// folder, the second argument or `scratch/run`.
+pub fn input_and_output(scratch: &str) -> anyhow::Result<(PathBuf, PathBuf)> {
+    let mut args = std::env::args().skip(1);
+    let root = std::env::temp_dir().join(scratch);
+    let recording = match args.next() {
+        Some(path) => PathBuf::from(path),
+        None => {
+            let path = root.join("recording");
+            if !path.join("frames").is_dir() {
+                println!("writing the built-in synthetic fridge recording to {}", path.display());
+                let fridge = aim::synth::object("fridge")?;
+                aim::synth::recording::write_recording(&fridge, &Default::default(), &path)?;
+            }
+            path
+        }
+    };
+    let out = args.next().map_or_else(|| root.join("run"), PathBuf::from);
+    Ok((recording, out))
+}
+
+/// Run `recording` (with its MPS files and object region beside it) through the
+/// session to its twin in `out`, as `aim run` does with the cpu preset; `cfg`
+/// changes the session's settings, `on_event` sees what happens as it happens.
+pub fn run(
+    recording: &Path,
+    out: &Path,
+    cfg: impl FnOnce(&mut SessionConfig),
+    viz: &aim::viz::Viz,
+    on_event: &(dyn Fn(SessionEvent) + Sync),
+) -> anyhow::Result<()> {
+    // The frames undistorted as `aim run` trains on them (704 px, focal 300).
+    let undistort = UndistortConfig { width: 704, height: 704, focal: 300.0, upright: false };
+    let opened = open_recording(recording, &RecordingOptions { undistort, ..Default::default() })?;
+    let mut config = SessionConfig::cpu(0);
+    config.room = Some(RoomSetup::for_recording(recording, &opened, &config)?);
+    cfg(&mut config);
+    let ground_truth = recording.join("gt/joints.json").is_file().then(|| recording.to_path_buf());
+    let interrupt = std::sync::atomic::AtomicBool::new(false);
+    let control = SessionControl { interrupt: &interrupt, viz };
+    let reference = Reference { ground_truth, ..Default::default() };
+    match run_session(opened, reference, out, &config, &control, on_event)? {
+        SessionOutcome::Finished { parts, report } => {
+            for (k, p) in parts.iter().enumerate() {
+                println!("part {k}: {:?}, axis {:?}, amount {:.3}", p.joint.kind, p.joint.axis, p.joint.amount);
+            }
+            if let Some(gt) = &report.stage_two.gt_report {
+                println!("against the ground truth: {}", serde_json::to_string(gt)?);
+            }
+            let t = &report.timing;
+            println!(
+                "{:.1} s in all; the twin in {} ({:?} s after hand-out)",
+                t.wall_s,
+                out.display(),
+                t.hand_out_to_twin_s
+            );
+        }
+        SessionOutcome::Interrupted => println!("interrupted"),
+    }
+    Ok(())
+}
