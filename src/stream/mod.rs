@@ -90,12 +90,12 @@ impl RoomSetup {
     /// The setup of the recording `input` as opened: its poses, object region and
     /// SLAM points are all needed, and each missing one is named.
     pub fn for_recording(input: &Path, opened: &Opened, cfg: &SessionConfig) -> Result<Self> {
-        let Some(trajectory_path) = &opened.trajectory_path else {
+        if opened.trajectory_path.is_none() {
             return Err(Error::bad_file(
                 input,
                 "a recording needs its camera poses (an MPS closed_loop_trajectory.csv beside it, or --trajectory)",
             ));
-        };
+        }
         let Some(region) = opened.region else {
             return Err(Error::bad_file(
                 input,
@@ -118,9 +118,10 @@ impl RoomSetup {
                 format!("no semidense point is placed to within {MAX_POINT_DIST_STD} m"),
             ));
         }
-        let hands = match &opened.hands_path {
-            Some(path) => Some((HandTracking::load(path)?, Trajectory::load(trajectory_path)?)),
-            None => None,
+        // The trajectory as the frames' poses were read from it (loaded once).
+        let hands = match (&opened.hands_path, &opened.processor.trajectory) {
+            (Some(path), Some(trajectory)) => Some((HandTracking::load(path)?, trajectory.clone())),
+            _ => None,
         };
         Ok(Self { hands, ..Self::new(region, points, cfg) })
     }

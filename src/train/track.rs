@@ -495,8 +495,7 @@ impl NodeTracker {
         );
         let n = self.node_centres.len();
         let all = vec![1; n];
-        let centre = self.gaussians_labelled(&all, 1).iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>()
-            / self.gaussians.len().max(1) as f32;
+        let centre = self.labelled_centroid(&all, 1);
         // Judged on the frames up to discovery, as the free tracking's parts are:
         // later, a door opened towards the wearer shows the face the start state lacks.
         let knots = self.knot_at(self.config.track.discovery_time) + 1;
@@ -525,8 +524,7 @@ impl NodeTracker {
             if let Some(c) = &mut self.contact {
                 c.node = held as u32;
             }
-            let members = self.gaussians_labelled(&node_part, 1);
-            let centre = members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
+            let centre = self.labelled_centroid(&node_part, 1);
             self.articulation =
                 Some(TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]] });
         }
@@ -536,8 +534,8 @@ impl NodeTracker {
     /// its motion and existence are what the hand tracking measured, so it moves
     /// only as the palm did (no photometric pose fit: the frames show faces of it
     /// the start state never saw), and the tests that ask whether a part exists
-    /// (the merges, the end-state check) and the end-pose search pass it by; its
-    /// pieces are still cleaned.
+    /// (the merges, the end-state check and discovery) and the end-pose search
+    /// pass it by; its pieces are judged once, when the hand takes hold.
     fn held_part(&self) -> Option<usize> {
         let contact = self.contact.as_ref().filter(|c| c.motion.is_some())?;
         self.articulation.as_ref()?.node_part[contact.node as usize].checked_sub(1)
@@ -756,9 +754,7 @@ impl NodeTracker {
             self.add_arap(&poses, &mut at_t);
             if let Some(parts) = &self.articulation {
                 at_t = parts.part_gradient(&self.node_centres, &at_t, &parts.poses[j]);
-                if let Some(p) = held {
-                    at_t[6 * p..6 * p + 6].fill(0.0);
-                }
+                self.hold_still(&mut at_t);
             }
             // The pose at t blends knots k and k + 1: each gets its share of the gradient.
             let n6 = at_t.len();
@@ -1127,12 +1123,7 @@ impl NodeTracker {
         let count = node_part.iter().copied().max().unwrap_or(0);
         let nodes: Vec<Vec<usize>> =
             (1..=count).map(|p| (0..node_part.len()).filter(|&k| node_part[k] == p).collect()).collect();
-        let centres: Vec<Vec3> = (1..=count)
-            .map(|p| {
-                let members = self.gaussians_labelled(&node_part, p);
-                members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32
-            })
-            .collect();
+        let centres: Vec<Vec3> = (1..=count).map(|p| self.labelled_centroid(&node_part, p)).collect();
         let poses = self
             .knots
             .iter()
@@ -1266,9 +1257,7 @@ impl NodeTracker {
             // The part the hand held ends where the hand let go of it: the end
             // state shows the face of it the start state never saw (a door
             // opened towards the wearer), which would pull it anywhere.
-            if let Some(p) = self.held_part() {
-                grad[6 * p..6 * p + 6].fill(0.0);
-            }
+            self.hold_still(&mut grad);
             let step = optimizer.step(&grad, &[c.track.lr_rotation, c.track.lr_translation * self.object_size]);
             let parts = self.articulation.as_mut().expect("parts");
             apply_step(&mut parts.poses[last], &step);
@@ -1615,6 +1604,19 @@ impl NodeTracker {
     /// The start-state Gaussians whose node `node_part` labels `label` (0 = base, p + 1 = part p).
     fn gaussians_labelled(&self, node_part: &[usize], label: usize) -> Vec<usize> {
         (0..self.binding.len()).filter(|&i| node_part[self.binding[i] as usize] == label).collect()
+    }
+
+    /// The centroid of those Gaussians (a part's centre, the one its poses turn about).
+    fn labelled_centroid(&self, node_part: &[usize], label: usize) -> Vec3 {
+        let members = self.gaussians_labelled(node_part, label);
+        members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32
+    }
+
+    /// Zero the held part's share of a part-pose gradient: it moves as the palm did.
+    fn hold_still(&self, part_grad: &mut [f32]) {
+        if let Some(p) = self.held_part() {
+            part_grad[6 * p..6 * p + 6].fill(0.0);
+        }
     }
 
     /// Gaussians per node.
@@ -2176,7 +2178,7 @@ mod tests {
         truth: impl FnOnce(Vec3) -> NodePose,
     ) -> (Vec<usize>, TrackedParts, GaussianSet) {
         let members = tracker.gaussians_labelled(&node_part, 1);
-        let centre = members.iter().map(|&i| tracker.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
+        let centre = tracker.labelled_centroid(&node_part, 1);
         let parts = TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]; 2] };
         let n = tracker.node_centres.len();
         tracker.knots = vec![vec![NodePose::IDENTITY; n]; 2];

@@ -69,9 +69,7 @@ impl NodeTracker {
             nodes.iter().for_each(|&k| tried[k] = true);
             let p = trial.centres.len();
             nodes.iter().for_each(|&k| trial.node_part[k] = p + 1);
-            let members = self.gaussians_labelled(&trial.node_part, p + 1);
-            let centre = members.iter().map(|&i| self.gaussians.mean(i)).sum::<Vec3>() / members.len().max(1) as f32;
-            trial.centres.push(centre);
+            trial.centres.push(self.labelled_centroid(&trial.node_part, p + 1));
             trial.poses.iter_mut().for_each(|k| k.push(NodePose::IDENTITY));
             let before = (self.articulation.clone(), self.knots[last].clone());
             self.set_articulation(trial);
