@@ -16,8 +16,8 @@ fn main() -> anyhow::Result<()> {
     let (recording, out) = common::input_and_output("aim-example-aria-replay")?;
     common::run(&recording, &out, |_| {}, &aim::viz::Viz::disabled(), &|e| match e {
         SessionEvent::Window(w) => println!("motion window: {w:?}"),
-        SessionEvent::StageOneStarted { views } => println!("stage I on {views} scan frames"),
-        SessionEvent::StageTwoStarted { motion, end } => {
+        SessionEvent::StageOneStarted { views, .. } => println!("stage I on {views} scan frames"),
+        SessionEvent::StageTwoStarted { motion, end, .. } => {
             println!("stages II and III on {motion} motion and {end} end-state frames")
         }
         SessionEvent::StageOne(_) | SessionEvent::StageTwo(_) => {}

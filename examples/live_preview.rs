@@ -21,11 +21,11 @@ fn main() -> anyhow::Result<()> {
     };
     common::run(&recording, &out, live, &aim::viz::Viz::disabled(), &|e| match e {
         SessionEvent::Window(w) => println!("live: {w:?}"),
-        SessionEvent::StageOneStarted { views } => println!("live: stage I starts on {views} scan frames"),
+        SessionEvent::StageOneStarted { views, .. } => println!("live: stage I starts on {views} scan frames"),
         SessionEvent::StageOne(r) if r.iteration % 500 == 0 => {
             println!("live: stage I {} PSNR {:.2} dB, {} Gaussians", r.iteration, r.psnr, r.gaussians)
         }
-        SessionEvent::StageTwoStarted { motion, end } => println!("live: stage II on {motion} + {end} frames"),
+        SessionEvent::StageTwoStarted { motion, end, .. } => println!("live: stage II on {motion} + {end} frames"),
         SessionEvent::StageTwo(s) if s.iteration % 720 == 0 => {
             println!("live: stage II {} PSNR {:.2} dB", s.iteration, s.psnr)
         }

@@ -177,7 +177,7 @@ fn stage_one(
     }
     let cfg = StaticConfig::resolve(None, preset, Some(seed), None)?;
     let (train, test) = load_phase_views(data, aim_capture::Phase::Scan, cfg.resolution, cfg.depth_weight > 0.0)?;
-    let setup = RunSetup { run_dir, resume: true, init: None };
+    let setup = RunSetup { run_dir, resume: true, init: None, arriving: None };
     match run_static(cfg, &train, &test, &setup, interrupt, &Viz::disabled(), |_| {})? {
         RunOutcome::Finished(m) => Ok(Some((run_dir.join("static.ply"), m.mean_psnr, m.wall_time_s))),
         RunOutcome::Interrupted(_) => Ok(None),

@@ -151,6 +151,32 @@ impl Viz {
         let _ = (path, width, height, rgb);
     }
 
+    /// The viewer's layout for a session (`aim run`, docs/session.md): the scene in
+    /// 3D (input cameras by phase, stage I's Gaussians, the tracked and final
+    /// parts), stage I's and stage II's scalars, and the session's events. Sent
+    /// once, as the viewer's default, so a recording opens on it.
+    pub fn send_session_blueprint(&self) {
+        #[cfg(feature = "rerun")]
+        if let Some(rec) = &self.rec {
+            use rerun::blueprint::{
+                Blueprint, BlueprintActivation, Horizontal, Spatial3DView, TextLogView, TimeSeriesView, Vertical,
+            };
+            let scene = Spatial3DView::new("scene").with_origin("/").with_contents([
+                "/session/input/**",
+                "/world/**",
+                "/stage2/**",
+                "/stage3/**",
+            ]);
+            let charts = Vertical::new([
+                TimeSeriesView::new("stage I").with_contents(["/train/**"]).into(),
+                TimeSeriesView::new("stage II").with_contents(["/stage2/loss", "/stage2/psnr"]).into(),
+                TextLogView::new("events").with_contents(["/session/events"]).into(),
+            ]);
+            let layout = Blueprint::new(Horizontal::new([scene.into(), charts.into()]).with_column_shares([2.0, 1.0]));
+            log_or_warn(layout.send(rec, BlueprintActivation { make_active: true, make_default: true }));
+        }
+    }
+
     /// Flush pending data (before the program exits or a file is read).
     pub fn flush(&self) {
         #[cfg(feature = "rerun")]

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use aim::synth::objects;
-use aim::synth::recording::{write_recording, RecordingConfig, RecordingSummary};
+use aim::synth::recording::{write_recording, InteractionSummary, RecordingConfig, RecordingSummary};
 use aim_capture::crop::DEFAULT_MARGIN;
 use aim_capture::detect::MotionEvent;
 use aim_capture::recording::{cropped_frame, open_recording, DetectorKind, RecordingOptions};
@@ -50,6 +50,14 @@ fn window_frames(events: &[MotionEvent]) -> (Option<usize>, Option<usize>) {
     (hin, hout)
 }
 
+/// The detected window `(hand-in, hand-out)` frames within `frames` of the truth.
+fn assert_window_near(detected: (usize, usize), truth: &InteractionSummary, frames: usize, detector: &str) {
+    let (hin, hout) = detected;
+    eprintln!("{detector} window: frames {hin}..{hout}, truth {}..{}", truth.hand_in_frame, truth.hand_out_frame);
+    assert!(hin.abs_diff(truth.hand_in_frame) <= frames, "{detector} hand-in {hin} vs {}", truth.hand_in_frame);
+    assert!(hout.abs_diff(truth.hand_out_frame) <= frames, "{detector} hand-out {hout} vs {}", truth.hand_out_frame);
+}
+
 fn check_recording_files(dir: &Path, s: &RecordingSummary) {
     for f in [
         "calibration.json",
@@ -65,7 +73,8 @@ fn check_recording_files(dir: &Path, s: &RecordingSummary) {
         assert!(dir.join(f).is_file(), "missing {f}");
     }
     assert_eq!(s.frames, 55);
-    assert_eq!((s.hand_in_frame, s.hand_out_frame), (20, 40));
+    let window = &s.interactions[0];
+    assert_eq!((s.interactions.len(), window.hand_in_frame, window.hand_out_frame), (1, 20, 40));
     check_semidense_points(dir);
 }
 
@@ -90,22 +99,52 @@ fn check_semidense_points(dir: &Path) {
 }
 
 #[test]
+fn two_objects_give_two_windows_each_at_its_object() {
+    let dir = tmp("synth-two");
+    let objects = [objects::object("fridge").unwrap(), objects::object("storage").unwrap()];
+    let cfg = RecordingConfig { resolution: 128, walk_s: 1.0, ..small(true) };
+    let s = write_recording(&objects, &cfg, &dir).unwrap();
+    assert_eq!(s.interactions.len(), 2);
+    assert_eq!(s.frames, ((2.0 * (2.0 + 2.0 + 1.5) + 1.0) * 10.0) as usize);
+    // One region and one ground truth per object; the objects stand apart.
+    let opened = open_recording(&dir, &opts(DetectorKind::Mps)).unwrap();
+    let [a, b] = opened.regions.as_slice() else { panic!("{:?}", opened.regions) };
+    assert!(b.min[0] > a.max[0] + 1.0, "{a:?} {b:?}");
+    for k in 0..2 {
+        let gt = aim::synth::recording::object_ground_truth(&dir, k).join("gt/joints.json");
+        assert!(gt.is_file(), "{}", gt.display());
+    }
+    // The MPS hands give both windows, each within two frames of the truth.
+    let (frames, events, _) = opened.collect();
+    assert_eq!(frames.len(), s.frames);
+    assert_eq!(events.len(), 4, "{events:?}");
+    for (window, truth) in events.chunks(2).zip(&s.interactions) {
+        let [MotionEvent::HandIn { frame: hin, .. }, MotionEvent::HandOut { frame: hout, .. }] = window else {
+            panic!("{window:?}")
+        };
+        assert_window_near((*hin, *hout), truth, 2, "mps");
+    }
+    // Between the windows the frames are after the first and before the second.
+    let (first_out, second_in) = (s.interactions[0].hand_out_frame + 3, s.interactions[1].hand_in_frame - 3);
+    assert!(frames[first_out..second_in].iter().all(|f| f.phase == Phase::After));
+}
+
+#[test]
 fn synthetic_recording_hand_window_within_two_frames() {
     let dir = tmp("synth-hand");
     let fridge = objects::object("fridge").unwrap();
-    let s = write_recording(&fridge, &small(true), &dir).unwrap();
+    let s = write_recording(std::slice::from_ref(&fridge), &small(true), &dir).unwrap();
     check_recording_files(&dir, &s);
 
     // MPS hand tracking + trajectory + object region, all found beside the recording.
     let opened = open_recording(&dir, &opts(DetectorKind::Mps)).unwrap();
-    assert!(opened.trajectory_path.is_some() && opened.hands_path.is_some() && opened.region.is_some());
+    assert!(opened.trajectory_path.is_some() && opened.hands_path.is_some() && opened.regions.len() == 1);
     let (frames, events, stats) = opened.collect();
     assert_eq!(stats.corrupt, 0);
     assert_eq!(frames.len(), s.frames, "{stats:?}");
     let (hin, hout) = window_frames(&events);
     let (hin, hout) = (hin.expect("hand-in detected"), hout.expect("hand-out detected"));
-    assert!(hin.abs_diff(s.hand_in_frame) <= 2, "hand-in {hin} vs truth {}", s.hand_in_frame);
-    assert!(hout.abs_diff(s.hand_out_frame) <= 2, "hand-out {hout} vs truth {}", s.hand_out_frame);
+    assert_window_near((hin, hout), &s.interactions[0], 2, "mps");
     assert_eq!(frames[hin].phase, Phase::Motion);
     assert_eq!(frames[hin - 1].phase, Phase::Scan);
     assert_eq!(frames[hout].phase, Phase::After);
@@ -128,9 +167,7 @@ fn synthetic_recording_hand_window_within_two_frames() {
     let (_, events, _) = open_recording(&dir, &opts(DetectorKind::Skin)).unwrap().collect();
     let (hin_s, hout_s) = window_frames(&events);
     let (hin_s, hout_s) = (hin_s.expect("skin hand-in"), hout_s.expect("skin hand-out"));
-    eprintln!("skin window: frames {hin_s}..{hout_s}, truth {}..{}", s.hand_in_frame, s.hand_out_frame);
-    assert!(hin_s.abs_diff(s.hand_in_frame) <= 5, "skin hand-in {hin_s} vs {}", s.hand_in_frame);
-    assert!(hout_s.abs_diff(s.hand_out_frame) <= 5, "skin hand-out {hout_s} vs {}", s.hand_out_frame);
+    assert_window_near((hin_s, hout_s), &s.interactions[0], 5, "skin");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -138,7 +175,7 @@ fn synthetic_recording_hand_window_within_two_frames() {
 fn synthetic_recording_without_hand_has_no_window() {
     let dir = tmp("synth-nohand");
     let fridge = objects::object("fridge").unwrap();
-    let s = write_recording(&fridge, &small(false), &dir).unwrap();
+    let s = write_recording(std::slice::from_ref(&fridge), &small(false), &dir).unwrap();
     check_recording_files(&dir, &s);
     for det in [DetectorKind::Mps, DetectorKind::Skin] {
         let (frames, events, _) = open_recording(&dir, &opts(det)).unwrap().collect();
@@ -155,10 +192,10 @@ fn synthetic_recording_without_hand_has_no_window() {
 #[test]
 fn the_object_crop_is_the_frame_seen_through_the_region() {
     let dir = tmp("crop");
-    write_recording(&objects::fridge(), &small(false), &dir).unwrap();
+    write_recording(&[objects::fridge()], &small(false), &dir).unwrap();
     let options = opts(DetectorKind::None);
     let index = 7;
-    let crop = cropped_frame(&dir, index, &options, 96, DEFAULT_MARGIN).unwrap();
+    let crop = cropped_frame(&dir, index, 0, &options, 96, DEFAULT_MARGIN).unwrap();
     let (whole, _, _) = open_recording(&dir, &options).unwrap().collect();
     let whole = &whole[index];
     assert_eq!(crop.world_to_camera, whole.world_to_camera);

@@ -1,5 +1,8 @@
 //! Motion-window detection: when does the hand take hold of the object (hand-in) and
-//! let go (hand-out)? Frames before hand-in are `Scan`, between `Motion`, after `After`.
+//! let go (hand-out)? Frames before the first hand-in are `Scan`, between a hand-in and
+//! its hand-out `Motion`, after a hand-out `After`. A recording may hold several
+//! interactions one after another: after a hand-out the next hand-in opens another
+//! window, so the events alternate hand-in, hand-out, hand-in, ...
 //!
 //! Pluggable evidence ([`Evidence`]) gives a per-frame score; a [`WindowTracker`] turns
 //! the scores into events with hysteresis in value (on/off thresholds) and in time
@@ -79,7 +82,8 @@ impl<T> WindowTracker<T> {
         let hand = evidence >= self.cfg.on;
         let no_hand = evidence < self.cfg.off || !evidence.is_finite();
         match self.state {
-            Phase::Scan => {
+            // Before a window (the scan, or after an earlier window): the same test opens one.
+            Phase::Scan | Phase::After => {
                 if hand {
                     self.pending.push_back((item, frame, timestamp_s));
                     if self.pending.len() >= self.cfg.min_on.max(1) {
@@ -91,8 +95,9 @@ impl<T> WindowTracker<T> {
                         out.extend(self.pending.drain(..).map(|(it, _, _)| (it, Phase::Motion)));
                     }
                 } else {
-                    out.extend(self.pending.drain(..).map(|(it, _, _)| (it, Phase::Scan)));
-                    out.push((item, Phase::Scan));
+                    let idle = self.state;
+                    out.extend(self.pending.drain(..).map(|(it, _, _)| (it, idle)));
+                    out.push((item, idle));
                 }
             }
             Phase::Motion => {
@@ -111,7 +116,6 @@ impl<T> WindowTracker<T> {
                     out.push((item, Phase::Motion));
                 }
             }
-            Phase::After => out.push((item, Phase::After)),
         }
         (out, event)
     }
@@ -123,13 +127,13 @@ impl<T> WindowTracker<T> {
         self.pending.drain(..).map(|(it, _, _)| (it, s)).collect()
     }
 
-    /// The detected window (hand-in, hand-out) in seconds, if any.
+    /// The first detected window (hand-in, hand-out) in seconds, if any.
     pub fn window(&self) -> (Option<f64>, Option<f64>) {
         window_of(&self.events)
     }
 }
 
-/// (hand-in, hand-out) times from a list of events.
+/// The first window's (hand-in, hand-out) times from a list of events.
 pub fn window_of(events: &[MotionEvent]) -> (Option<f64>, Option<f64>) {
     let hin = events.iter().find_map(|e| match e {
         MotionEvent::HandIn { timestamp_s, .. } => Some(*timestamp_s),
@@ -219,10 +223,11 @@ impl ObjectRegion {
 }
 
 /// MPS hand tracking: 1 when a hand with confidence >= `min_confidence` has its wrist
-/// or palm within `margin` of the object region (or anywhere, without a region), else 0.
+/// or palm within `margin` of an object region (or anywhere, without regions), else 0.
 pub struct HandTrackingEvidence {
     pub hands: HandTracking,
-    pub region: Option<ObjectRegion>,
+    /// The objects a hand may take hold of (empty: anywhere).
+    pub regions: Vec<ObjectRegion>,
     pub margin: f64,
     pub min_confidence: f64,
     /// Largest gap between a frame and the nearest hand sample (ns).
@@ -231,10 +236,10 @@ pub struct HandTrackingEvidence {
 }
 
 impl HandTrackingEvidence {
-    pub fn new(hands: HandTracking, region: Option<ObjectRegion>) -> Self {
+    pub fn new(hands: HandTracking, regions: Vec<ObjectRegion>) -> Self {
         HandTrackingEvidence {
             hands,
-            region,
+            regions,
             margin: 0.05,
             min_confidence: 0.5,
             max_gap_ns: 100_000_000,
@@ -256,29 +261,27 @@ impl Evidence for HandTrackingEvidence {
             if h.confidence < self.min_confidence {
                 continue;
             }
-            match (&self.region, &f.t_world_device) {
-                (None, _) => return 1.0,
-                (Some(r), Some(twd)) => {
-                    let d = r
-                        .distance(twd.transform_point(h.palm_device))
-                        .min(r.distance(twd.transform_point(h.wrist_device)));
-                    if d <= self.margin {
-                        return 1.0;
-                    }
-                }
-                // A region but no pose: the hand cannot be placed in the world.
-                (Some(_), None) => {}
+            if self.regions.is_empty() {
+                return 1.0;
+            }
+            // With regions but no pose the hand cannot be placed in the world.
+            let Some(twd) = &f.t_world_device else { continue };
+            let (palm, wrist) = (twd.transform_point(h.palm_device), twd.transform_point(h.wrist_device));
+            if self.regions.iter().any(|r| r.distance(palm).min(r.distance(wrist)) <= self.margin) {
+                return 1.0;
             }
         }
         0.0
     }
 }
 
-/// Skin colour in the object's image region: the fraction of sampled pixels in the
+/// Skin colour in an object's image region: the fraction of sampled pixels in the
 /// region whose YCbCr falls in the usual skin range *and* that connect to skin outside
-/// the region (see [`connected_skin_fraction`]), divided by `reference_fraction`, capped at 1.
+/// the region (see [`connected_skin_fraction`]), divided by `reference_fraction`, capped
+/// at 1; with several objects, the most of any of them.
 pub struct SkinEvidence {
-    pub region: Option<ObjectRegion>,
+    /// The objects' regions (empty: the central half of the image).
+    pub regions: Vec<ObjectRegion>,
     /// Skin fraction that counts as a full "hand" score.
     pub reference_fraction: f32,
     /// Sample every `stride`-th pixel in x and y.
@@ -289,7 +292,7 @@ pub struct SkinEvidence {
 impl Default for SkinEvidence {
     fn default() -> Self {
         SkinEvidence {
-            region: None,
+            regions: Vec::new(),
             reference_fraction: 0.004,
             stride: 2,
             hysteresis: Hysteresis { on: 1.0, off: 0.5, min_on: 3, min_off: 3 },
@@ -414,15 +417,16 @@ impl Evidence for SkinEvidence {
     }
     fn evidence(&mut self, f: &FrameView<'_>) -> f32 {
         let (w, h) = (f.image.width(), f.image.height());
-        let rect = match (&self.region, &f.world_to_camera) {
-            (Some(r), Some(w2c)) => match r.image_rect(w2c, f.intrinsics) {
-                Some(rect) => rect,
-                None => return 0.0,
-            },
-            // No region: the central half of the image.
-            _ => (w / 4, h / 4, 3 * w / 4, 3 * h / 4),
-        };
-        self.score(f.image, rect)
+        match (self.regions.is_empty(), &f.world_to_camera) {
+            (false, Some(w2c)) => self
+                .regions
+                .iter()
+                .filter_map(|r| r.image_rect(w2c, f.intrinsics))
+                .map(|rect| self.score(f.image, rect))
+                .fold(0.0, f32::max),
+            // No region, or no pose to place it: the central half of the image.
+            _ => self.score(f.image, (w / 4, h / 4, 3 * w / 4, 3 * h / 4)),
+        }
     }
 }
 
@@ -502,6 +506,23 @@ mod tests {
                 MotionEvent::HandOut { frame: 11, timestamp_s: 11.0 }
             ]
         );
+    }
+
+    #[test]
+    fn a_second_interaction_opens_a_second_window() {
+        let h = Hysteresis { on: 0.5, off: 0.5, min_on: 2, min_off: 2 };
+        let e = [0., 1., 1., 1., 0., 0., 0., 1., 0., 1., 1., 0., 0.];
+        let (p, ev) = run(&e, h);
+        use Phase::*;
+        assert_eq!(
+            p,
+            vec![Scan, Motion, Motion, Motion, After, After, After, After, After, Motion, Motion, After, After]
+        );
+        let (hand_in, hand_out) = (
+            |f: usize| MotionEvent::HandIn { frame: f, timestamp_s: f as f64 },
+            |f: usize| MotionEvent::HandOut { frame: f, timestamp_s: f as f64 },
+        );
+        assert_eq!(ev, vec![hand_in(1), hand_out(4), hand_in(9), hand_out(11)]);
     }
 
     #[test]

@@ -166,7 +166,7 @@ impl PhaseTagger {
         if let Some(given) = p.given_phase {
             // Source-given phases: pass through, events on transitions.
             let ev = match (self.last_given, given) {
-                (Some(Phase::Scan) | None, Phase::Motion) => {
+                (Some(Phase::Scan | Phase::After) | None, Phase::Motion) => {
                     Some(MotionEvent::HandIn { frame: p.frame.index, timestamp_s: p.frame.timestamp_s })
                 }
                 (Some(Phase::Motion), Phase::After) => {

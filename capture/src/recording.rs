@@ -5,7 +5,8 @@
 //! Files looked for beside a recording (a `.vrs` file's folder, or the recording folder):
 //! `mps/slam/closed_loop_trajectory.csv` or `closed_loop_trajectory.csv`;
 //! `mps/hand_tracking/wrist_and_palm_poses.csv` or `wrist_and_palm_poses.csv`;
-//! `object_region.json` (`{"min": [x, y, z], "max": [x, y, z]}`, world frame);
+//! `object_region.json` (`{"min": [x, y, z], "max": [x, y, z]}`, world frame, or a
+//! list of them: one per object the recording's interactions move);
 //! `mps/slam/semidense_points.csv.gz` or `semidense_points.csv.gz`.
 
 use std::path::{Path, PathBuf};
@@ -108,7 +109,8 @@ pub struct Opened {
     pub hands_path: Option<PathBuf>,
     /// MPS semidense points found beside the recording.
     pub points_path: Option<PathBuf>,
-    pub region: Option<ObjectRegion>,
+    /// The object regions (object_region.json or --region); empty when none is known.
+    pub regions: Vec<ObjectRegion>,
 }
 
 impl Opened {
@@ -167,16 +169,13 @@ pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
             })
             .flatten()
     });
-    let region = match opts.region {
-        Some(r) => Some(r),
+    let regions = match opts.region {
+        Some(r) => vec![r],
         None if opts.discover => match first_existing(&base, &["object_region.json"]) {
-            Some(p) => {
-                let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
-                Some(serde_json::from_str(&text).map_err(|e| Error::bad_file(&p, format!("object region: {e}")))?)
-            }
-            None => None,
+            Some(p) => read_regions(&p)?,
+            None => Vec::new(),
         },
-        None => None,
+        None => Vec::new(),
     };
     let vignetting = match &opts.vignetting {
         Some(p) => Some(image::open(p).map_err(|e| Error::bad_file(p, e.to_string()))?.to_luma8()),
@@ -193,14 +192,16 @@ pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
         _ => None,
     };
     let evidence: Box<dyn Evidence> = match (opts.detector, hands) {
-        (DetectorKind::Auto | DetectorKind::Mps, Some(h)) => Box::new(HandTrackingEvidence::new(h, region)),
+        (DetectorKind::Auto | DetectorKind::Mps, Some(h)) => Box::new(HandTrackingEvidence::new(h, regions.clone())),
         (DetectorKind::Mps, None) => {
             return Err(Error::bad_file(
                 path,
                 "detector mps needs a hand-tracking CSV (--hands or beside the recording)",
             ))
         }
-        (DetectorKind::Auto | DetectorKind::Skin, _) => Box::new(SkinEvidence { region, ..SkinEvidence::default() }),
+        (DetectorKind::Auto | DetectorKind::Skin, _) => {
+            Box::new(SkinEvidence { regions: regions.clone(), ..SkinEvidence::default() })
+        }
         (DetectorKind::Explicit(a, b), _) => Box::new(ExplicitEvidence { hand_in_s: a, hand_out_s: b }),
         (DetectorKind::None, _) => Box::new(NoEvidence),
     };
@@ -212,8 +213,35 @@ pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
         trajectory_path,
         hands_path,
         points_path,
-        region,
+        regions,
     })
+}
+
+/// object_region.json: one region, or a list of them (one per object).
+fn read_regions(path: &Path) -> Result<Vec<ObjectRegion>> {
+    #[derive(serde::Deserialize)]
+    #[serde(untagged)]
+    enum RegionFile {
+        One(ObjectRegion),
+        Several(Vec<ObjectRegion>),
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let regions = match serde_json::from_str(&text) {
+        Ok(RegionFile::One(r)) => vec![r],
+        Ok(RegionFile::Several(list)) => list,
+        Err(_) => {
+            return Err(Error::bad_file(
+                path,
+                "object region: expected {\"min\": [x, y, z], \"max\": [x, y, z]} or a list of such regions",
+            ))
+        }
+    };
+    let ordered = |r: &ObjectRegion| (0..3).all(|a| r.min[a] < r.max[a]);
+    match regions.iter().position(|r| !ordered(r)) {
+        _ if regions.is_empty() => Err(Error::bad_file(path, "object region: the list is empty")),
+        Some(k) => Err(Error::bad_file(path, format!("object region {k}: min must be below max on every axis"))),
+        None => Ok(regions),
+    }
 }
 
 /// The RGB camera of the first line of an online_calibration.jsonl, at the resolution of
@@ -357,14 +385,33 @@ pub fn inspect(path: &Path, opts: &RecordingOptions) -> Result<InspectReport> {
     })
 }
 
-/// Frame `index` of a recording, undistorted, posed and cut to the object
-/// region ([`crate::crop::ObjectCrop`], `size` pixels square): what the trainers
-/// see of it.
-pub fn cropped_frame(path: &Path, index: usize, opts: &RecordingOptions, size: u32, margin: f32) -> Result<Frame> {
+/// Frame `index` of a recording, undistorted, posed and cut to the region of
+/// object `object` ([`crate::crop::ObjectCrop`], `size` pixels square): what the
+/// trainers see of it.
+pub fn cropped_frame(
+    path: &Path,
+    index: usize,
+    object: usize,
+    opts: &RecordingOptions,
+    size: u32,
+    margin: f32,
+) -> Result<Frame> {
     let opened = open_recording(path, opts)?;
-    let region = opened.region.ok_or_else(|| {
-        Error::bad_file(path, "no object region (object_region.json beside the recording, or --region)")
-    })?;
+    let region = match opened.regions.get(object) {
+        Some(r) => *r,
+        None if opened.regions.is_empty() => {
+            return Err(Error::bad_file(
+                path,
+                "no object region (object_region.json beside the recording, or --region)",
+            ))
+        }
+        None => {
+            return Err(Error::bad_file(
+                path,
+                format!("object {object} out of range: the recording has {} object region(s)", opened.regions.len()),
+            ))
+        }
+    };
     let mut source = opened.source;
     let mut k = 0;
     while let Some(r) = source.next_frame() {

@@ -20,7 +20,7 @@ pub fn input_and_output(scratch: &str) -> anyhow::Result<(PathBuf, PathBuf)> {
             if !path.join("frames").is_dir() {
                 println!("writing the built-in synthetic fridge recording to {}", path.display());
                 let fridge = aim::synth::object("fridge")?;
-                aim::synth::recording::write_recording(&fridge, &Default::default(), &path)?;
+                aim::synth::recording::write_recording(std::slice::from_ref(&fridge), &Default::default(), &path)?;
             }
             path
         }
@@ -45,25 +45,23 @@ pub fn run(
     let mut config = SessionConfig::cpu(0);
     config.room = Some(RoomSetup::for_recording(recording, &opened, &config)?);
     cfg(&mut config);
-    let ground_truth = recording.join("gt/joints.json").is_file().then(|| recording.to_path_buf());
+    let ground_truth = Reference::recording_ground_truth(recording);
     let interrupt = std::sync::atomic::AtomicBool::new(false);
     let control = SessionControl { interrupt: &interrupt, viz };
     let reference = Reference { ground_truth, ..Default::default() };
     match run_session(opened, reference, out, &config, &control, on_event)? {
         SessionOutcome::Finished { parts, report } => {
-            for (k, p) in parts.iter().enumerate() {
-                println!("part {k}: {:?}, axis {:?}, amount {:.3}", p.joint.kind, p.joint.axis, p.joint.amount);
+            for (interaction, parts) in report.interactions.iter().zip(&parts) {
+                println!("{} (object {}):", interaction.dir, interaction.object);
+                for (k, p) in parts.iter().enumerate() {
+                    println!("  part {k}: {:?}, axis {:?}, amount {:.3}", p.joint.kind, p.joint.axis, p.joint.amount);
+                }
+                if let Some(gt) = &interaction.stage_two.gt_report {
+                    println!("  against the ground truth: {}", serde_json::to_string(gt)?);
+                }
+                println!("  its twin {:?} s after its hand-out", interaction.hand_out_to_twin_s);
             }
-            if let Some(gt) = &report.stage_two.gt_report {
-                println!("against the ground truth: {}", serde_json::to_string(gt)?);
-            }
-            let t = &report.timing;
-            println!(
-                "{:.1} s in all; the twin in {} ({:?} s after hand-out)",
-                t.wall_s,
-                out.display(),
-                t.hand_out_to_twin_s
-            );
+            println!("{:.1} s in all; the twins in {}", report.wall_s, out.display());
         }
         SessionOutcome::Interrupted => println!("interrupted"),
     }

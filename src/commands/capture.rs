@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use aim_capture::detect::ObjectRegion;
+use aim_capture::detect::{MotionEvent, ObjectRegion};
 use aim_capture::recording::{cropped_frame, inspect, undistort_frame, DetectorKind, RecordingOptions};
 use aim_capture::undistort::UndistortConfig;
 use anyhow::Context;
@@ -53,6 +53,9 @@ pub enum Capture {
         /// Output size in pixels (square).
         #[arg(long, default_value_t = 256)]
         crop_size: u32,
+        /// Which object region (0-based, in object_region.json's order).
+        #[arg(long, default_value_t = 0)]
+        object: usize,
         #[command(flatten)]
         common: Common,
         #[arg(long)]
@@ -156,10 +159,16 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
             println!("trajectory  {}", report.trajectory.as_deref().unwrap_or("none"));
             println!("hands       {}", report.hand_tracking.as_deref().unwrap_or("none"));
             println!("detector    {}", report.detector);
-            match (report.hand_in_s, report.hand_out_s) {
-                (Some(a), Some(b)) => println!("window      hand-in {a:.3} s, hand-out {b:.3} s"),
-                (Some(a), None) => println!("window      hand-in {a:.3} s, no hand-out before the end"),
-                _ => println!("window      none detected"),
+            if report.events.is_empty() {
+                println!("window      none detected");
+            }
+            for window in report.events.chunks(2) {
+                match window {
+                    [MotionEvent::HandIn { timestamp_s: a, .. }, MotionEvent::HandOut { timestamp_s: b, .. }] => {
+                        println!("window      hand-in {a:.3} s, hand-out {b:.3} s")
+                    }
+                    _ => println!("window      {window:?}, no hand-out before the end"),
+                }
             }
             if !report.evidence.is_empty() {
                 let ev: Vec<String> = report.evidence.iter().map(|e| format!("{e:.2}")).collect();
@@ -174,9 +183,9 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
                 report.stats.unposed
             );
         }
-        Capture::Crop { recording, frame, crop_size, common, out, camera_out } => {
+        Capture::Crop { recording, frame, crop_size, object, common, out, camera_out } => {
             let opts = common.options(TRAIN_UNDISTORT)?;
-            let f = cropped_frame(&recording, frame, &opts, crop_size, aim_capture::crop::DEFAULT_MARGIN)?;
+            let f = cropped_frame(&recording, frame, object, &opts, crop_size, aim_capture::crop::DEFAULT_MARGIN)?;
             let mut bytes = Vec::new();
             image::DynamicImage::ImageRgba8((*f.image).clone())
                 .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)

@@ -88,7 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let never = AtomicBool::new(false);
     let viz = args.rerun.open()?;
     let run_dir = args.out.join("static");
-    let setup = RunSetup { run_dir: &run_dir, resume: false, init: None };
+    let setup = RunSetup { run_dir: &run_dir, resume: false, init: None, arriving: None };
     let outcome = run_static(train_cfg, &train, &test, &setup, &never, &viz, |r| {
         bar.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians));
     })?;

@@ -38,6 +38,11 @@ impl Progress {
         }
     }
 
+    /// Start again from 0 (the next interaction's stage).
+    pub fn restart(&self) {
+        self.bar.reset();
+    }
+
     pub fn finish(&self) {
         self.bar.finish_and_clear();
     }

@@ -1,7 +1,8 @@
-//! `aim run INPUT --out RUN`: one session from a dataset's frames to the twin
-//! (`aim::stream`): the ingestion thread reads and tags the frames, stage I
-//! trains on the scan while the motion frames arrive, stages II and III run
-//! when the stream ends.
+//! `aim run INPUT --out RUN`: one session from a dataset's or a recording's
+//! frames to a twin per interaction (`aim::stream`): the ingestion thread reads
+//! and tags the frames, each interaction's stage I trains on its object's scan
+//! while the motion frames arrive, its stages II and III run when its
+//! after-phase is over.
 
 use std::path::{Path, PathBuf};
 
@@ -20,7 +21,8 @@ pub struct Args {
     /// An AiM-layout dataset (start/, motion/, end/), a nerfstudio folder
     /// (transforms.json) or a COLMAP folder (sparse/ + images/).
     pub input: PathBuf,
-    /// Output folder: static/ (stage I), dynamic/ (stages II and III, the twin), session.json.
+    /// Output folder: interaction_K/static/ (stage I), interaction_K/dynamic/
+    /// (stages II and III, the twin) for each interaction K = 1, 2, ...; session.json.
     #[arg(long)]
     pub out: PathBuf,
     /// Preset of both stages: cpu or paper.
@@ -75,7 +77,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => {
             let opened = open_recording(&args.input, &args.recording.options(super::capture::TRAIN_UNDISTORT)?)?;
             cfg.room = Some(RoomSetup::for_recording(&args.input, &opened, &cfg)?);
-            let ground_truth = has_ground_truth(&args.input).then(|| args.input.clone());
+            let ground_truth = Reference::recording_ground_truth(&args.input);
             (opened, Reference { ground_truth, ..Reference::default() })
         }
     };
@@ -86,39 +88,52 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let stage_two = super::progress::Progress::new("stage II", cfg.stage_two.iterations);
     let on_event = |e: SessionEvent| match e {
         SessionEvent::Window(w) => println!("motion window: {w:?}"),
-        SessionEvent::StageOneStarted { views } => println!("stage I on {views} scan frames, while the motion arrives"),
+        SessionEvent::StageOneStarted { interaction, object, views } => {
+            stage_one.restart();
+            println!(
+                "interaction {}: stage I on {views} frames of object {object} before its hand-in, while the motion arrives",
+                interaction + 1
+            )
+        }
         SessionEvent::StageOne(r) => {
             stage_one.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians))
         }
-        SessionEvent::StageTwoStarted { motion, end } => {
+        SessionEvent::StageTwoStarted { interaction, motion, end } => {
             stage_one.finish();
-            println!("stages II and III on {motion} motion frames and {end} end-state frames");
+            stage_two.restart();
+            println!(
+                "interaction {}: stages II and III on {motion} motion frames and {end} end-state frames",
+                interaction + 1
+            );
         }
         SessionEvent::StageTwo(s) => stage_two.update(s.iteration, || format!("psnr {:.2}", s.psnr)),
     };
     match run_session(opened, reference, &args.out, &cfg, &control, &on_event)? {
         SessionOutcome::Finished { parts, report } => {
             stage_two.finish();
+            for (interaction, parts) in report.interactions.iter().zip(&parts) {
+                println!(
+                    "{} (object {}): stage I {} Gaussians, PSNR {:.2} dB; frames: {} scan, {} motion, {} after",
+                    interaction.dir,
+                    interaction.object,
+                    interaction.stage_one.gaussians,
+                    interaction.stage_one.mean_psnr,
+                    interaction.frames.scan,
+                    interaction.frames.motion,
+                    interaction.frames.after
+                );
+                super::train_dynamic::print_joints(parts, interaction.stage_two.gt_report.as_ref());
+                println!(
+                    "  the twin {} after hand-out, in {}",
+                    interaction.hand_out_to_twin_s.map_or("(no hand-out)".into(), |s| format!("{s:.1} s")),
+                    args.out.join(&interaction.dir).join("dynamic/twin").display()
+                );
+            }
             println!(
-                "stage I: {} Gaussians, PSNR {:.2} dB; frames: {} scan, {} motion, {} after",
-                report.stage_one.gaussians,
-                report.stage_one.mean_psnr,
-                report.frames.scan,
-                report.frames.motion,
-                report.frames.after
-            );
-            super::train_dynamic::print_joints(&parts, report.stage_two.gt_report.as_ref());
-            let t = &report.timing;
-            println!(
-                "{:.1} s in all; the twin {} after hand-out; {} frame(s) dropped",
-                t.wall_s,
-                t.hand_out_to_twin_s.map_or("(no hand-out)".into(), |s| format!("{s:.1} s")),
-                report.ingest.dropped
-            );
-            println!(
-                "wrote {} and the twin in {}",
-                args.out.join("session.json").display(),
-                args.out.join("dynamic/twin").display()
+                "{:.1} s in all; {} frame(s) dropped; wrote {}",
+                report.wall_s,
+                report.ingest.dropped,
+                args.out.join("session.json").display()
             );
         }
         SessionOutcome::Interrupted => {
@@ -136,6 +151,6 @@ fn reference(input: &Path, cfg: &SessionConfig) -> anyhow::Result<Reference> {
     Ok(Reference {
         scan_test: test(Phase::Scan, cfg.stage_one.resolution)?,
         motion_test: test(Phase::Motion, cfg.stage_two.resolution)?,
-        ground_truth: has_ground_truth(input).then(|| input.to_path_buf()),
+        ground_truth: if has_ground_truth(input) { vec![input.to_path_buf()] } else { Vec::new() },
     })
 }

@@ -1,5 +1,6 @@
-//! `aim synth-recording OBJECT --out DIR`: a synthetic Aria-like recording (fisheye
-//! frames, calibration JSON, MPS trajectory and hand tracking, ground truth).
+//! `aim synth-recording OBJECT[,OBJECT...] --out DIR`: a synthetic Aria-like
+//! recording (fisheye frames, calibration JSON, MPS trajectory and hand tracking,
+//! ground truth), one interaction per object.
 
 use std::path::PathBuf;
 
@@ -8,7 +9,8 @@ use aim::synth::recording::{write_recording, RecordingConfig};
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Object (see `aim synth --list`).
+    /// Object (see `aim synth --list`), or several separated by commas: they stand
+    /// in a row and the wearer opens each in turn (one interaction each).
     pub object: String,
     #[arg(long)]
     pub out: PathBuf,
@@ -32,7 +34,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
-    let obj = objects::object(&a.object)?;
+    let objects = a.object.split(',').map(objects::object).collect::<Result<Vec<_>, _>>()?;
     let cfg = RecordingConfig {
         resolution: a.resolution,
         fps: a.fps,
@@ -43,7 +45,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         ..RecordingConfig::default()
     };
     let t = std::time::Instant::now();
-    let s = write_recording(&obj, &cfg, &a.out)?;
+    let s = write_recording(&objects, &cfg, &a.out)?;
     eprintln!("wrote {} frames to {} in {:.1} s", s.frames, a.out.display(), t.elapsed().as_secs_f64());
     println!("{}", serde_json::to_string_pretty(&s)?);
     Ok(())

@@ -1,16 +1,21 @@
-//! The session: one input's frames to the twin, the stages wired one way.
+//! The session: one input's frames to a twin per interaction, the stages wired
+//! one way.
 //!
 //! source -> ingestion thread (aim-capture: decode, undistort, pose, phases and
 //! the hand-in / hand-out events) -> phase router (the calling thread: frames to
-//! training views, bounded per phase) -> stage I worker (starts when the scan
-//! ends, trains while the motion is still arriving) -> stages II and III (when
-//! the stream ends: the node tracker fits the motion on its whole window) -> the
-//! twin. Batch commands call the same stage code (`run_static`,
-//! `run_dynamic`), so a dataset fed through a session gives the stage
-//! commands' result (test `a_session_on_a_dataset_gives_the_stage_commands_result`).
+//! training views, cut to each object and bounded per phase) -> one worker per
+//! interaction (a hand-in / hand-out window): stage I on the frames that showed
+//! its object before the hand-in, while the motion is still arriving, then
+//! stages II and III once its after-phase is over (the next hand-in, or the end
+//! of the stream: the node tracker fits the motion on its whole window) -> its
+//! twin. One stage trains at a time. Batch commands call the same stage code
+//! (`run_static`, `run_dynamic`), so a dataset fed through a session gives the
+//! stage commands' result (test `a_session_on_a_dataset_gives_the_stage_commands_result`).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
 
 use aim_capture::crop::ObjectCrop;
 use aim_capture::detect::{MotionEvent, ObjectRegion};
@@ -44,19 +49,22 @@ pub struct SessionConfig {
     pub room: Option<RoomSetup>,
 }
 
-/// How a session separates the object from the room of a raw recording:
-/// stage I learns both from crops around the object region, starting from the
-/// recording's SLAM points (the room's Gaussians start where the room is, so
-/// they, not the region's, explain it); the object is what lies in the region;
-/// stages II and III see the room as a fixed backdrop behind it.
+/// How a session separates the objects from the room of a raw recording: stage
+/// I learns an object and the room seen around it from crops around the
+/// object's region, starting from the recording's SLAM points (the room's
+/// Gaussians start where the room is, so they, not the region's, explain it);
+/// the object is what lies in the region; stages II and III see the room as a
+/// fixed backdrop behind it. A recording may show several objects, each
+/// interaction moving one of them.
 #[derive(Clone, Debug)]
 pub struct RoomSetup {
-    pub crop: ObjectCrop,
+    /// One crop per object region, in object_region.json's order.
+    pub crops: Vec<ObjectCrop>,
     /// Stage I's initial points (the recording's MPS semidense points).
     pub points: crate::splat::ply::PointCloud,
     /// The recording's hand tracking and device poses, when it has them: each
     /// motion frame carries the palms seen at its time (the contact term of
-    /// stage II's node tracking).
+    /// stage II's node tracking), and they say which object a hand took hold of.
     pub hands: Option<(HandTracking, Trajectory)>,
 }
 
@@ -67,12 +75,15 @@ const PALM_MAX_GAP_NS: i64 = 50_000_000;
 const PALM_MIN_CONFIDENCE: f64 = 0.5;
 
 impl RoomSetup {
-    /// Crops of `region` at the trainers' resolution, every pixel kept.
-    pub fn new(region: ObjectRegion, points: Vec<glam::Vec3>, cfg: &SessionConfig) -> Self {
+    /// Crops of each of `regions` at the trainers' resolution, every pixel kept.
+    pub fn new(regions: Vec<ObjectRegion>, points: Vec<glam::Vec3>, cfg: &SessionConfig) -> Self {
         let size = [cfg.stage_one.resolution, cfg.stage_two.resolution].into_iter().max().unwrap_or(0);
         let size = if size == 0 { CROP_SIZE_AS_RECORDED } else { size };
-        let crop = ObjectCrop { region, size, margin: aim_capture::crop::DEFAULT_MARGIN, mask_outside: false };
-        RoomSetup { crop, points: crate::splat::ply::PointCloud { points, colors: None }, hands: None }
+        let crops = regions
+            .into_iter()
+            .map(|region| ObjectCrop { region, size, margin: aim_capture::crop::DEFAULT_MARGIN, mask_outside: false })
+            .collect();
+        RoomSetup { crops, points: crate::splat::ply::PointCloud { points, colors: None }, hands: None }
     }
 
     /// World positions of the palms seen at `timestamp_s` (device clock).
@@ -87,7 +98,31 @@ impl RoomSetup {
         })
     }
 
-    /// The setup of the recording `input` as opened: its poses, object region and
+    /// The object an interaction that starts at `hand_in_s` takes hold of: the
+    /// one nearest the palms seen then, or, without palms, the one nearest the
+    /// middle of `frame`, the first frame of the motion (a wearer looks at what
+    /// they take hold of).
+    fn object_touched(&self, hand_in_s: f64, frame: &Frame) -> usize {
+        let palms = self.palms_at(hand_in_s);
+        let score = |crop: &ObjectCrop| -> f64 {
+            let r = &crop.region;
+            if palms.is_empty() {
+                let centre = glam::DVec3::from_array(r.min).lerp(glam::DVec3::from_array(r.max), 0.5).as_vec3();
+                let p = frame.world_to_camera.transform_point3(centre);
+                if p.z > 0.0 {
+                    f64::from(p.x.hypot(p.y) / p.z)
+                } else {
+                    f64::INFINITY
+                }
+            } else {
+                palms.iter().map(|p| r.distance(p.as_dvec3())).fold(f64::INFINITY, f64::min)
+            }
+        };
+        let scores: Vec<f64> = self.crops.iter().map(score).collect();
+        (0..scores.len()).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).unwrap_or(0)
+    }
+
+    /// The setup of the recording `input` as opened: its poses, object regions and
     /// SLAM points are all needed, and each missing one is named.
     pub fn for_recording(input: &Path, opened: &Opened, cfg: &SessionConfig) -> Result<Self> {
         if opened.trajectory_path.is_none() {
@@ -96,13 +131,13 @@ impl RoomSetup {
                 "a recording needs its camera poses (an MPS closed_loop_trajectory.csv beside it, or --trajectory)",
             ));
         }
-        let Some(region) = opened.region else {
+        if opened.regions.is_empty() {
             return Err(Error::bad_file(
                 input,
                 "a recording needs the object's region (object_region.json beside it, or --region \
                  x0,y0,z0,x1,y1,z1 in its trajectory's world frame): its frames show the whole room",
             ));
-        };
+        }
         let Some(points_path) = &opened.points_path else {
             return Err(Error::bad_file(
                 input,
@@ -123,24 +158,24 @@ impl RoomSetup {
             (Some(path), Some(trajectory)) => Some((HandTracking::load(path)?, trajectory.clone())),
             _ => None,
         };
-        Ok(Self { hands, ..Self::new(region, points, cfg) })
+        Ok(Self { hands, ..Self::new(opened.regions.clone(), points, cfg) })
     }
 
-    /// Whether a Gaussian centred at `p` is the object's: inside the region
+    /// Whether a Gaussian centred at `p` is object `object`'s: inside its region
     /// grown by `OBJECT_MARGIN` of its size, since a region drawn tight to the
     /// object has the object's surface Gaussians on both sides of its faces.
-    fn contains(&self, p: glam::Vec3) -> bool {
-        let r = &self.crop.region;
+    fn contains(&self, object: usize, p: glam::Vec3) -> bool {
+        let r = &self.crops[object].region;
         let (lo, hi) = (glam::Vec3::from(r.min.map(|v| v as f32)), glam::Vec3::from(r.max.map(|v| v as f32)));
         let margin = OBJECT_MARGIN * (hi - lo).max_element();
         p.cmpge(lo - margin).all() && p.cmple(hi + margin).all()
     }
 
-    /// Stage I's result split: the object (Gaussians in the region) written to
-    /// `object_ply`, and the room.
-    fn split(&self, static_ply: &Path, object_ply: &Path) -> Result<crate::splat::GaussianSet> {
+    /// Stage I's result split: object `object` (Gaussians in its region) written
+    /// to `object_ply`, and the room.
+    fn split(&self, object: usize, static_ply: &Path, object_ply: &Path) -> Result<crate::splat::GaussianSet> {
         let set = crate::splat::ply::read_ply(static_ply)?;
-        let inside: Vec<bool> = (0..set.len()).map(|i| self.contains(set.mean(i))).collect();
+        let inside: Vec<bool> = (0..set.len()).map(|i| self.contains(object, set.mean(i))).collect();
         crate::splat::ply::write_ply(object_ply, &set.subset(&inside))?;
         let outside: Vec<bool> = inside.iter().map(|b| !b).collect();
         Ok(set.subset(&outside))
@@ -197,13 +232,31 @@ const OBJECT_MARGIN: f32 = 0.05;
 const CROP_SIZE_AS_RECORDED: u32 = 512;
 
 /// What a session knows that its frames do not carry: held-out views for the
-/// metrics and ground truth (a synthetic dataset's), when there are any.
+/// metrics and ground truth (a synthetic dataset's or recording's), when there
+/// are any.
 #[derive(Default)]
 pub struct Reference {
     pub scan_test: Vec<TrainView>,
     pub motion_test: Vec<TrainView>,
-    /// A folder with gt/joints.json.
-    pub ground_truth: Option<PathBuf>,
+    /// Folders with gt/joints.json, one per object in the order of the object
+    /// regions (one for a dataset); empty without ground truth.
+    pub ground_truth: Vec<PathBuf>,
+}
+
+impl Reference {
+    /// The ground truth a synthetic recording carries: `recording`/gt for one
+    /// object, `recording`/object_K/gt for each of several
+    /// (`aim synth-recording`).
+    pub fn recording_ground_truth(recording: &Path) -> Vec<PathBuf> {
+        use crate::eval::twin::has_ground_truth;
+        if has_ground_truth(recording) {
+            return vec![recording.to_path_buf()];
+        }
+        (0..)
+            .map(|k| crate::synth::recording::object_ground_truth(recording, k))
+            .take_while(|dir| has_ground_truth(dir))
+            .collect()
+    }
 }
 
 /// Where a session stops early and what it logs to.
@@ -213,12 +266,14 @@ pub struct SessionControl<'a> {
     pub viz: &'a Viz,
 }
 
-/// What a session reports as it goes (from the router and the stage I worker).
+/// What a session reports as it goes (from the router and the workers).
+/// Interactions count from 0; one stage trains at a time, so the step reports
+/// belong to the interaction whose stage started last.
 pub enum SessionEvent<'a> {
     Window(MotionEvent),
-    StageOneStarted { views: usize },
+    StageOneStarted { interaction: usize, object: usize, views: usize },
     StageOne(&'a StepReport),
-    StageTwoStarted { motion: usize, end: usize },
+    StageTwoStarted { interaction: usize, motion: usize, end: usize },
     StageTwo(&'a DynamicStep),
 }
 
@@ -234,24 +289,31 @@ pub struct PhaseCounts {
 #[derive(Clone, Debug, Serialize)]
 pub struct SessionReport {
     pub source: String,
-    pub frames: PhaseCounts,
-    /// Frames dropped because the object region was out of their view (cropped inputs).
+    /// Frames no object region was in view of (cropped inputs): not used.
     pub frames_without_object: usize,
-    /// Hand-in and hand-out as the ingestion thread saw them (frame index and
-    /// seconds on the source's clock; a dataset's clock is nominal, per phase).
+    /// Every hand-in and hand-out as the ingestion thread saw them (frame index
+    /// and seconds on the source's clock; a dataset's clock is nominal, per phase).
     pub events: Vec<MotionEvent>,
     pub ingest: IngestStats,
-    pub stage_one: StaticMetrics,
-    pub stage_two: DynamicMetrics,
-    pub timing: SessionTiming,
+    /// One per hand-in, in time order.
+    pub interactions: Vec<InteractionReport>,
+    /// From the start of the session to the last twin written (wall clock).
+    pub wall_s: f64,
 }
 
-/// How long the session took, on the wall clock.
+/// What one interaction gave.
 #[derive(Clone, Debug, Serialize)]
-pub struct SessionTiming {
-    /// From the start of the session to the twin written.
-    pub wall_s: f64,
-    /// From the moment the hand-out event arrived to the twin written: how far
+pub struct InteractionReport {
+    /// Its folder under the session's (interaction_K, K from 1).
+    pub dir: String,
+    /// The object region it moved (0-based, object_region.json's order).
+    pub object: usize,
+    /// Its hand-in and hand-out.
+    pub events: Vec<MotionEvent>,
+    pub frames: PhaseCounts,
+    pub stage_one: StaticMetrics,
+    pub stage_two: DynamicMetrics,
+    /// From the moment its hand-out event arrived to its twin written: how far
     /// the reconstruction lags behind the capture (`aim run --live`).
     pub hand_out_to_twin_s: Option<f64>,
 }
@@ -259,7 +321,8 @@ pub struct SessionTiming {
 /// How a session ended.
 pub enum SessionOutcome {
     Finished {
-        parts: Vec<PartEstimate>,
+        /// Each interaction's parts, in the report's order.
+        parts: Vec<Vec<PartEstimate>>,
         report: Box<SessionReport>,
     },
     /// Stopped by the interrupt flag; the running stage wrote its checkpoint.
@@ -281,11 +344,12 @@ impl FrameStore {
         FrameStore { cap: cap.max(2), stride: 1, seen: 0, views: Vec::new() }
     }
 
-    fn push(&mut self, timestamp_s: f64, view: TrainView) {
+    /// Whether the view was kept (it may be dropped later, as the store thins out).
+    fn push(&mut self, timestamp_s: f64, view: TrainView) -> bool {
         let keep = self.seen.is_multiple_of(self.stride);
         self.seen += 1;
         if !keep {
-            return;
+            return false;
         }
         if self.views.len() == self.cap {
             let mut k = 0;
@@ -295,15 +359,70 @@ impl FrameStore {
             });
             self.stride *= 2;
             if !(self.seen - 1).is_multiple_of(self.stride) {
-                return;
+                return false;
             }
         }
         self.views.push((timestamp_s, view));
+        true
+    }
+
+    /// Its views, oldest first, leaving it empty.
+    fn take(&mut self) -> Vec<TrainView> {
+        let cap = self.cap;
+        std::mem::replace(self, FrameStore::new(cap)).views.into_iter().map(|(_, v)| v).collect()
     }
 }
 
-/// Run `opened` through the ingestion thread to the twin in `out` (static/:
-/// stage I, dynamic/: stages II and III and the twin, session.json).
+/// The frames an interaction's stages II and III learn from, handed to its
+/// worker when its after-phase is over.
+struct MotionFrames {
+    /// The scan, when stage I trained on it as it arrived (the worker has it
+    /// otherwise): stage II reads its cameras, the report counts it.
+    arrived_scan: Option<Vec<TrainView>>,
+    motion: Vec<(f64, TrainView)>,
+    end: Vec<TrainView>,
+    events: Vec<MotionEvent>,
+    hand_out_at: Option<Instant>,
+}
+
+/// An interaction whose scan, motion or after-phase frames are arriving.
+struct OpenInteraction<'scope> {
+    object: usize,
+    /// Its scan, sent on to its stage I as it arrives (the first interaction of a
+    /// one-object recording, before its hand-in); None once the hand-in closed it.
+    scan_feed: Option<crossbeam_channel::Sender<TrainView>>,
+    arrived_scan: Option<Vec<TrainView>>,
+    motion: FrameStore,
+    after: FrameStore,
+    events: Vec<MotionEvent>,
+    hand_out_at: Option<Instant>,
+    frames: crossbeam_channel::Sender<MotionFrames>,
+    worker: WorkerHandle<'scope>,
+}
+
+/// An interaction's worker: its parts and report, None when interrupted.
+type WorkerHandle<'scope> =
+    std::thread::ScopedJoinHandle<'scope, Result<Option<(Vec<PartEstimate>, InteractionReport)>>>;
+
+impl<'scope> OpenInteraction<'scope> {
+    /// Its frames are all in: hand them to its worker.
+    fn close(self) -> WorkerHandle<'scope> {
+        let frames = MotionFrames {
+            arrived_scan: self.arrived_scan,
+            motion: self.motion.views,
+            end: self.after.views.into_iter().map(|(_, v)| v).collect(),
+            events: self.events,
+            hand_out_at: self.hand_out_at,
+        };
+        // A worker that stopped (interrupted, or failed in stage I) no longer listens.
+        let _ = self.frames.send(frames);
+        self.worker
+    }
+}
+
+/// Run `opened` through the ingestion thread to a twin per interaction in `out`
+/// (interaction_K/static: stage I, interaction_K/dynamic: stages II and III and
+/// the twin; session.json).
 pub fn run_session(
     opened: Opened,
     reference: Reference,
@@ -320,18 +439,27 @@ pub fn run_session(
         )));
     }
     let source = opened.source.describe();
-    let started = std::time::Instant::now();
+    let started = Instant::now();
+    control.viz.send_session_blueprint();
+    let objects = cfg.room.as_ref().map_or(1, |r| r.crops.len());
     let ingest = Ingest::spawn(opened.source, opened.processor, opened.tagger, cfg.ingest.clone())
         .map_err(|e| Error::Other(format!("starting the ingestion thread: {e}")))?;
-    let static_dir = out.join("static");
+    let turns = TrainingTurns::default();
+    let worker =
+        InteractionWorker { reference: &reference, out, cfg, control, on_event, turns: &turns, source: &source };
     std::thread::scope(|scope| {
-        let mut scan: Vec<TrainView> = Vec::new();
-        let mut motion = FrameStore::new(cfg.max_frames_per_phase);
-        let mut after = FrameStore::new(cfg.max_frames_per_phase);
+        // Per object, the frames that showed it outside any motion: the scan of
+        // its next interaction.
+        let mut scans: Vec<FrameStore> = (0..objects).map(|_| FrameStore::new(cfg.max_frames_per_phase)).collect();
         let mut events = Vec::new();
-        let mut stage_one = None;
+        let mut hand_in = None;
+        let mut open: Option<OpenInteraction> = None;
+        let mut closed = Vec::new();
         let mut frames_without_object = 0;
-        let mut hand_out_at = None;
+        // A recording of one object: its first interaction's stage I starts with
+        // the first frame that shows it, on the scan as it arrives.
+        let start_early = cfg.room.as_ref().is_some_and(|r| r.crops.len() == 1);
+        let mut early: Option<OpenInteraction> = None;
         for message in &ingest {
             if control.interrupt.load(Ordering::SeqCst) {
                 break;
@@ -339,8 +467,13 @@ pub fn run_session(
             let frame = match message {
                 Message::Frame(f) => f,
                 Message::Event(e) => {
-                    if matches!(e, MotionEvent::HandOut { .. }) {
-                        hand_out_at = Some(std::time::Instant::now());
+                    match (e, open.as_mut()) {
+                        (MotionEvent::HandIn { .. }, _) => hand_in = Some(e),
+                        (MotionEvent::HandOut { .. }, Some(o)) => {
+                            o.hand_out_at = Some(Instant::now());
+                            o.events.push(e);
+                        }
+                        (MotionEvent::HandOut { .. }, None) => {}
                     }
                     control.viz.text("session/events", &format!("{e:?}"));
                     on_event(SessionEvent::Window(e));
@@ -349,126 +482,328 @@ pub fn run_session(
                 }
                 Message::Error(e) => return Err(Error::from(e)),
             };
-            let frame = match &cfg.room {
-                None => frame,
-                Some(room) => match room.crop.apply(&frame) {
-                    Some(f) => f,
-                    None => {
-                        frames_without_object += 1;
-                        continue;
-                    }
-                },
-            };
             log_frame(control.viz, &frame);
-            if frame.phase == Phase::Scan {
-                if stage_one.is_some() {
-                    tracing::warn!("{}: a scan frame after the motion began; not used", frame.source);
-                    continue;
+            if let Some(e) = hand_in.take() {
+                // The first frame of a motion: the last interaction's after-phase is
+                // over, and this one's object is known.
+                if let Some(o) = open.take() {
+                    closed.push(o.close());
                 }
-                scan.push(TrainView::from_frame(&frame, cfg.stage_one.resolution)?);
-                continue;
-            }
-            if stage_one.is_none() {
-                // The scan is over: stage I trains while the motion arrives.
-                if scan.is_empty() {
-                    return Err(Error::bad_file(
-                        &frame.source,
-                        "the motion begins at the first frame: no scan of the start state to train on",
-                    ));
-                }
-                control.viz.text("session/events", &format!("stage I starts on {} scan frames", scan.len()));
-                on_event(SessionEvent::StageOneStarted { views: scan.len() });
-                let (views, test, dir) = (std::mem::take(&mut scan), &reference.scan_test, &static_dir);
-                stage_one = Some(scope.spawn(move || {
-                    let setup = RunSetup { run_dir: dir, resume: false, init: cfg.room.as_ref().map(|r| &r.points) };
-                    let outcome =
-                        run_static(cfg.stage_one.clone(), &views, test, &setup, control.interrupt, control.viz, |r| {
-                            on_event(SessionEvent::StageOne(r))
-                        });
-                    (views, outcome)
-                }));
-            }
-            let mut view = TrainView::from_frame(&frame, cfg.stage_two.resolution)?;
-            match frame.phase {
-                Phase::Motion => {
-                    if let Some(room) = &cfg.room {
-                        view.palms = room.palms_at(frame.timestamp_s);
+                let MotionEvent::HandIn { timestamp_s, .. } = e else { unreachable!("only hand-ins wait") };
+                let object = cfg.room.as_ref().map_or(0, |room| room.object_touched(timestamp_s, &frame));
+                let scan = scans[object].take();
+                let interaction = match early.take() {
+                    // Its stage I has been training on the scan: the scan is complete.
+                    Some(started) => {
+                        OpenInteraction { scan_feed: None, arrived_scan: Some(scan), events: vec![e], ..started }
                     }
-                    motion.push(frame.timestamp_s, view)
+                    None if scan.is_empty() => return Err(Error::bad_file(
+                        &frame.source,
+                        "the motion begins before any frame showed the object: no scan of its start state to train on",
+                    )),
+                    None => worker.open(scope, closed.len(), object, scan, None, vec![e], cfg.max_frames_per_phase),
+                };
+                open = Some(interaction);
+            }
+            let mut seen = false;
+            for (object, scan) in scans.iter_mut().enumerate() {
+                let frame = match &cfg.room {
+                    None => frame.clone(),
+                    Some(room) => match room.crops[object].apply(&frame) {
+                        Some(f) => f,
+                        None => continue,
+                    },
+                };
+                seen = true;
+                let after_a_motion = open.is_some() || !closed.is_empty();
+                let current = open.as_mut().filter(|o| o.object == object);
+                match (frame.phase, current) {
+                    (Phase::Motion, Some(o)) => {
+                        let mut view = TrainView::from_frame(&frame, cfg.stage_two.resolution)?;
+                        if let Some(room) = &cfg.room {
+                            view.palms = room.palms_at(frame.timestamp_s);
+                        }
+                        o.motion.push(frame.timestamp_s, view);
+                    }
+                    // Another object's motion: this one stands still, but the
+                    // moving one may reach into its crop.
+                    (Phase::Motion, None) => {}
+                    (Phase::Scan, _) if after_a_motion => {
+                        tracing::warn!("{}: a scan frame after the motion began; not used", frame.source);
+                    }
+                    (Phase::Scan, _) if start_early => {
+                        let view = TrainView::from_frame(&frame, cfg.stage_one.resolution)?;
+                        match &early {
+                            None => {
+                                let first = vec![view.clone()];
+                                let (feed, arriving) = crossbeam_channel::unbounded();
+                                let mut started = worker.open(
+                                    scope,
+                                    0,
+                                    object,
+                                    first,
+                                    Some(arriving),
+                                    Vec::new(),
+                                    cfg.max_frames_per_phase,
+                                );
+                                started.scan_feed = Some(feed);
+                                early = Some(started);
+                                scan.push(frame.timestamp_s, view);
+                            }
+                            Some(started) => {
+                                // Stage I gets what the store keeps (bounded as it is).
+                                if scan.push(frame.timestamp_s, view.clone()) {
+                                    if let Some(feed) = &started.scan_feed {
+                                        let _ = feed.send(view);
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    (phase, current) => {
+                        if let (Phase::After, Some(o)) = (phase, current) {
+                            o.after.push(frame.timestamp_s, TrainView::from_frame(&frame, cfg.stage_two.resolution)?);
+                        }
+                        scan.push(frame.timestamp_s, TrainView::from_frame(&frame, cfg.stage_one.resolution)?);
+                    }
                 }
-                _ => after.push(frame.timestamp_s, view),
+            }
+            if !seen {
+                frames_without_object += 1;
             }
         }
         let (stats, _) = ingest.stop();
         let interrupted = control.interrupt.load(Ordering::SeqCst);
-        let Some(stage_one) = stage_one else {
+        // A stage I started on a scan that no hand-in followed: its feed closes,
+        // and without frames to hand over its worker stops after stage I.
+        let unfinished = early.take().map(|o| o.worker);
+        match open.take() {
+            // Interrupted: its worker sees the channel close and stops.
+            Some(o) if interrupted => closed.push(o.worker),
+            Some(o) => closed.push(o.close()),
+            None => {}
+        }
+        if closed.is_empty() {
+            if let Some(worker) = unfinished {
+                let _ = worker.join();
+            }
             if interrupted {
                 return Ok(SessionOutcome::Interrupted);
             }
+            let scanned: usize = scans.iter().map(|s| s.views.len()).sum();
             return Err(Error::Other(format!(
-                "{source}: no interaction found ({} scan frame(s), no hand-in): nothing moved, so there is no articulation to learn",
-                scan.len()
+                "{source}: no interaction found ({scanned} scan frame(s), no hand-in): nothing moved, so there is no articulation to learn"
             )));
-        };
-        let (scan_views, outcome) = stage_one.join().map_err(|_| Error::Other("the stage I worker panicked".into()))?;
-        let stage_one_metrics = match outcome? {
-            RunOutcome::Finished(m) if !interrupted => *m,
-            _ => return Ok(SessionOutcome::Interrupted),
-        };
-        let motion_views = timed_motion(motion.views, &events, &source)?;
-        let end: Vec<TrainView> = after.views.into_iter().map(|(_, v)| v).collect();
-        let frames = PhaseCounts { scan: scan_views.len(), motion: motion_views.len(), after: end.len() };
-        control.viz.text(
-            "session/events",
-            &format!("stages II and III start on {} motion and {} end-state frames", frames.motion, frames.after),
-        );
-        on_event(SessionEvent::StageTwoStarted { motion: frames.motion, end: frames.after });
-        let mut input = StageTwoInput {
-            source: PathBuf::from(&source),
-            motion: motion_views,
-            test: reference.motion_test,
-            scan: scan_views,
-            end,
-            ground_truth: reference.ground_truth,
-        };
-        let mut start_state = static_dir.join("static.ply");
-        if let Some(room) = &cfg.room {
-            let object = static_dir.join("object.ply");
-            let room_set = room.split(&start_state, &object)?;
-            set_backdrops(&mut input.motion, &room_set);
-            set_backdrops(&mut input.end, &room_set);
-            start_state = object;
         }
-        let run_control = RunControl { resume: false, interrupt: control.interrupt, viz: control.viz };
-        let outcome = run_dynamic(
-            input,
-            &start_state,
-            &out.join("dynamic"),
-            cfg.stage_two.clone(),
-            &cfg.mesh,
-            &run_control,
-            |s| on_event(SessionEvent::StageTwo(s)),
-        )?;
-        let DynamicOutcome::Finished { parts, metrics } = outcome else {
-            return Ok(SessionOutcome::Interrupted);
-        };
+        let mut parts = Vec::new();
+        let mut interactions = Vec::new();
+        for handle in closed {
+            match handle.join().map_err(|_| Error::Other("an interaction's worker panicked".into()))?? {
+                Some((p, report)) => {
+                    parts.push(p);
+                    interactions.push(report);
+                }
+                None => return Ok(SessionOutcome::Interrupted),
+            }
+        }
         let report = SessionReport {
-            source,
-            frames,
+            source: source.clone(),
             frames_without_object,
             events,
             ingest: stats,
-            stage_one: stage_one_metrics,
-            stage_two: *metrics,
-            timing: SessionTiming {
-                wall_s: started.elapsed().as_secs_f64(),
-                hand_out_to_twin_s: hand_out_at.map(|t: std::time::Instant| t.elapsed().as_secs_f64()),
-            },
+            interactions,
+            wall_s: started.elapsed().as_secs_f64(),
         };
         let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Other(e.to_string()))?;
         write_atomic(&out.join("session.json"), &json)?;
         Ok(SessionOutcome::Finished { parts, report: Box::new(report) })
     })
+}
+
+/// What every interaction's worker shares.
+struct InteractionWorker<'a> {
+    reference: &'a Reference,
+    out: &'a Path,
+    cfg: &'a SessionConfig,
+    control: &'a SessionControl<'a>,
+    on_event: &'a (dyn Fn(SessionEvent) + Sync),
+    turns: &'a TrainingTurns,
+    source: &'a str,
+}
+
+/// One stage trains at a time (the machine's cores go to it), and of the stages
+/// waiting, the earliest interaction's goes first: an interaction's twin comes
+/// before the next one's stage I.
+#[derive(Default)]
+struct TrainingTurns {
+    /// Whether a stage is training, and the interactions waiting for their turn.
+    state: Mutex<(bool, std::collections::BTreeSet<usize>)>,
+    changed: std::sync::Condvar,
+}
+
+/// A stage's turn to train, given back when dropped.
+struct Turn<'a>(&'a TrainingTurns);
+
+impl TrainingTurns {
+    /// Wait for `interaction`'s turn.
+    fn take(&self, interaction: usize) -> Turn<'_> {
+        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        state.1.insert(interaction);
+        while state.0 || state.1.first() != Some(&interaction) {
+            state = self.changed.wait(state).unwrap_or_else(|e| e.into_inner());
+        }
+        state.1.remove(&interaction);
+        state.0 = true;
+        Turn(self)
+    }
+}
+
+impl Drop for Turn<'_> {
+    fn drop(&mut self) {
+        self.0.state.lock().unwrap_or_else(|e| e.into_inner()).0 = false;
+        self.0.changed.notify_all();
+    }
+}
+
+impl<'a> InteractionWorker<'a> {
+    /// Interaction `interaction` on object `object`, its worker started on
+    /// `scope` with stage I's views `scan` (and `arriving`, the rest of the scan
+    /// as it arrives, if it is still arriving).
+    #[allow(clippy::too_many_arguments)]
+    fn open<'scope>(
+        &'scope self,
+        scope: &'scope std::thread::Scope<'scope, '_>,
+        interaction: usize,
+        object: usize,
+        scan: Vec<TrainView>,
+        arriving: Option<crossbeam_channel::Receiver<TrainView>>,
+        events: Vec<MotionEvent>,
+        max_frames: usize,
+    ) -> OpenInteraction<'scope> {
+        let (frames, handed_over) = crossbeam_channel::bounded(1);
+        OpenInteraction {
+            object,
+            scan_feed: None,
+            arrived_scan: None,
+            motion: FrameStore::new(max_frames),
+            after: FrameStore::new(max_frames),
+            events,
+            hand_out_at: None,
+            frames,
+            worker: scope.spawn(move || self.run(interaction, object, scan, arriving, handed_over)),
+        }
+    }
+
+    /// Interaction `interaction` on object `object`: stage I on its scan while
+    /// its motion arrives, then stages II and III on the frames `frames` hands
+    /// over when its after-phase is over. None: interrupted, or no hand-in came.
+    fn run(
+        &self,
+        interaction: usize,
+        object: usize,
+        scan: Vec<TrainView>,
+        arriving: Option<crossbeam_channel::Receiver<TrainView>>,
+        frames: crossbeam_channel::Receiver<MotionFrames>,
+    ) -> Result<Option<(Vec<PartEstimate>, InteractionReport)>> {
+        let (cfg, control, on_event) = (self.cfg, self.control, self.on_event);
+        let dir_name = format!("interaction_{}", interaction + 1);
+        let dir = self.out.join(&dir_name);
+        let static_dir = dir.join("static");
+        let turn = self.turns.take(interaction);
+        let stage_one = {
+            control.viz.text(
+                "session/events",
+                &format!(
+                    "interaction {}: stage I starts on {} scan frame(s){}",
+                    interaction + 1,
+                    scan.len(),
+                    if arriving.is_some() { ", more arriving" } else { "" }
+                ),
+            );
+            on_event(SessionEvent::StageOneStarted { interaction, object, views: scan.len() });
+            let setup = RunSetup {
+                run_dir: &static_dir,
+                resume: false,
+                init: cfg.room.as_ref().map(|r| &r.points),
+                arriving: arriving.as_ref(),
+            };
+            run_static(
+                cfg.stage_one.clone(),
+                &scan,
+                &self.reference.scan_test,
+                &setup,
+                control.interrupt,
+                control.viz,
+                |r| on_event(SessionEvent::StageOne(r)),
+            )?
+        };
+        let RunOutcome::Finished(stage_one) = stage_one else { return Ok(None) };
+        // Its frames already here (a replay, or a long stage I): its turn goes on
+        // into stages II and III. Else the turn is given back while they arrive.
+        // The router closes the channel without frames when interrupted.
+        let (handed_over, _turn) = match frames.try_recv() {
+            Ok(handed_over) => (handed_over, turn),
+            Err(_) => {
+                drop(turn);
+                let Ok(handed_over) = frames.recv() else { return Ok(None) };
+                (handed_over, self.turns.take(interaction))
+            }
+        };
+        let MotionFrames { arrived_scan, motion, end, events, hand_out_at } = handed_over;
+        let scan = arrived_scan.unwrap_or(scan);
+        if control.interrupt.load(Ordering::SeqCst) {
+            return Ok(None);
+        }
+        let motion = timed_motion(motion, &events, self.source)?;
+        let counts = PhaseCounts { scan: scan.len(), motion: motion.len(), after: end.len() };
+        control.viz.text(
+            "session/events",
+            &format!(
+                "interaction {}: stages II and III start on {} motion and {} end-state frames",
+                interaction + 1,
+                counts.motion,
+                counts.after
+            ),
+        );
+        on_event(SessionEvent::StageTwoStarted { interaction, motion: counts.motion, end: counts.after });
+        let mut input = StageTwoInput {
+            source: PathBuf::from(self.source),
+            motion,
+            test: self.reference.motion_test.clone(),
+            scan,
+            end,
+            ground_truth: self.reference.ground_truth.get(object).cloned(),
+        };
+        let mut start_state = static_dir.join("static.ply");
+        if let Some(room) = &cfg.room {
+            let object_ply = static_dir.join("object.ply");
+            let room_set = room.split(object, &start_state, &object_ply)?;
+            set_backdrops(&mut input.motion, &room_set);
+            set_backdrops(&mut input.end, &room_set);
+            start_state = object_ply;
+        }
+        let run_control = RunControl { resume: false, interrupt: control.interrupt, viz: control.viz };
+        let outcome = run_dynamic(
+            input,
+            &start_state,
+            &dir.join("dynamic"),
+            cfg.stage_two.clone(),
+            &cfg.mesh,
+            &run_control,
+            |s| on_event(SessionEvent::StageTwo(s)),
+        )?;
+        let DynamicOutcome::Finished { parts, metrics } = outcome else { return Ok(None) };
+        let report = InteractionReport {
+            dir: dir_name,
+            object,
+            events,
+            frames: counts,
+            stage_one: *stage_one,
+            stage_two: *metrics,
+            hand_out_to_twin_s: hand_out_at.map(|t| t.elapsed().as_secs_f64()),
+        };
+        Ok(Some((parts, report)))
+    }
 }
 
 /// The motion frames with their time in [0, 1]: the one the source gave, or
@@ -529,10 +864,10 @@ mod tests {
     #[test]
     fn the_frame_store_stays_bounded_and_spread_over_the_phase() {
         let mut store = FrameStore::new(64);
-        for k in 0..1000 {
-            store.push(k as f64, view(k));
-        }
+        let kept_on_push: Vec<bool> = (0..1000).map(|k| store.push(k as f64, view(k))).collect();
         let kept: Vec<usize> = store.views.iter().map(|(t, _)| *t as usize).collect();
+        // What it keeps now it kept when it came (a live stage I got it then).
+        assert!(kept.iter().all(|&k| kept_on_push[k]));
         assert!(kept.len() <= 64 && kept.len() >= 32, "{} kept", kept.len());
         // Evenly strided from the first frame to near the last.
         let stride = kept[1] - kept[0];
@@ -542,7 +877,7 @@ mod tests {
         assert!(*kept.last().unwrap() >= 1000 - stride, "{kept:?}");
         // Under the cap nothing is dropped.
         let mut small = FrameStore::new(64);
-        (0..64).for_each(|k| small.push(k as f64, view(k)));
+        assert!((0..64).all(|k| small.push(k as f64, view(k))));
         assert_eq!(small.views.len(), 64);
     }
 

@@ -367,6 +367,18 @@ impl Shape {
         Shape::Cylinder(CylinderShape { center, radius, half_height: 0.5 * height, rot: Mat3::from_cols(x, y, z) })
     }
 
+    /// The same shape moved by `offset`.
+    pub fn translated(&self, offset: Vec3) -> Self {
+        match self {
+            Shape::Box(b) => Shape::Box(BoxShape { center: b.center + offset, ..*b }),
+            Shape::Cylinder(c) => Shape::Cylinder(CylinderShape { center: c.center + offset, ..*c }),
+            Shape::Mesh(m) => Shape::Mesh(Arc::new(TriMesh::new(
+                m.vertices.iter().map(|v| *v + offset).collect(),
+                m.triangles.clone(),
+            ))),
+        }
+    }
+
     pub fn bounds(&self) -> Aabb {
         match self {
             Shape::Box(b) => {

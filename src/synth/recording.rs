@@ -1,7 +1,10 @@
-//! A synthetic Aria-like recording for end-to-end tests of the capture stage: a
-//! benchmark object ray-cast through the Aria RGB Fisheye624 model along a head-motion
-//! path, with a simple skin-coloured hand (palm box, finger and forearm cylinders) that
-//! reaches the moving part, moves with it and leaves. Written as MPS-style files:
+//! A synthetic Aria-like recording for end-to-end tests of the capture stage: one or
+//! more benchmark objects ray-cast through the Aria RGB Fisheye624 model along a
+//! head-motion path, with a simple skin-coloured hand (palm box, finger and forearm
+//! cylinders) that reaches a moving part, moves with it and leaves. With several
+//! objects they stand in a row on one floor and the wearer deals with them in turn:
+//! walks over (after the first), scans, opens, lets go and looks on, so each object
+//! gives one interaction. Written as MPS-style files:
 //!
 //! ```text
 //! OUT/frames/frame_00000.png ...     raw fisheye RGB frames (sensor orientation, not upright)
@@ -10,9 +13,11 @@
 //!                                    plus ImageWidth/ImageHeight of the frames
 //! OUT/mps/slam/closed_loop_trajectory.csv      T_world_device at 1 kHz (MPS columns)
 //! OUT/mps/hand_tracking/wrist_and_palm_poses.csv  30 Hz, confidence -1 when no hand
-//! OUT/object_region.json             world box swept by the object (+ nothing else)
+//! OUT/object_region.json             world box swept by the object (a list of boxes,
+//!                                    one per object, when there are several)
 //! OUT/gt/joints.json, trans.json, start|end/part_k.obj   as in the synthetic benchmark
-//! OUT/gt/window.json                 true hand-in / hand-out (ns, s, frame)
+//!                                    (with several objects: OUT/object_K/gt/..., K from 1)
+//! OUT/gt/window.json                 true hand-in / hand-out of each interaction (ns, s, frame)
 //! ```
 //!
 //! The true hand-in is the moment the hand touches the part (its motion starts); the
@@ -56,6 +61,8 @@ pub struct RecordingConfig {
     pub after_s: f64,
     /// Seconds the hand takes to reach the part and to leave it.
     pub approach_s: f64,
+    /// Seconds the wearer takes to walk from one object to the next.
+    pub walk_s: f64,
     /// Render the hand and write it to the hand-tracking CSV.
     pub hand: bool,
     /// Camera distance from the object centre, metres (default from the object's view hint).
@@ -71,6 +78,7 @@ impl Default for RecordingConfig {
             motion_s: 2.5,
             after_s: 2.0,
             approach_s: 0.4,
+            walk_s: 2.0,
             hand: true,
             distance: None,
         }
@@ -80,11 +88,20 @@ impl Default for RecordingConfig {
 /// What was written.
 #[derive(Clone, Debug, Serialize)]
 pub struct RecordingSummary {
-    pub object: String,
+    pub objects: Vec<String>,
     pub frames: usize,
     pub resolution: u32,
     pub fps: f64,
     pub hand: bool,
+    /// One per object, in time order.
+    pub interactions: Vec<InteractionSummary>,
+}
+
+/// When the hand held one object's part.
+#[derive(Clone, Debug, Serialize)]
+pub struct InteractionSummary {
+    pub object: String,
+    pub touched_part: usize,
     pub hand_in_ns: i64,
     pub hand_out_ns: i64,
     pub hand_in_s: f64,
@@ -92,7 +109,6 @@ pub struct RecordingSummary {
     /// First frame at or after hand-in / hand-out.
     pub hand_in_frame: usize,
     pub hand_out_frame: usize,
-    pub touched_part: usize,
 }
 
 /// The hand's rigid pose (palm centre, local x towards the forearm) and visibility at time `s`.
@@ -205,7 +221,7 @@ fn exit_distance(b: &Aabb, p: Vec3, d: Vec3) -> f32 {
     t.max(0.0)
 }
 
-fn plan(obj: &ArticulatedObject, cfg: &RecordingConfig) -> Result<Script> {
+fn plan(obj: &ArticulatedObject, t_in: f64, t_out: f64, approach: f64) -> Result<Script> {
     let joint = obj.joints.first().ok_or_else(|| Error::Config(format!("{} has no joint", obj.name)))?;
     let part = joint.part;
     let az = obj.view.front_azimuth_deg.to_radians();
@@ -252,15 +268,13 @@ fn plan(obj: &ArticulatedObject, cfg: &RecordingConfig) -> Result<Script> {
     let d_in = choose(touch);
     let palm = touch + f * 0.015;
     let contact = glam::Affine3A::from_mat3_translation(frame_from_x(d_in), palm);
-    let t_in = cfg.scan_s;
-    let t_out = cfg.scan_s + cfg.motion_s;
     let delta1 = obj.part_transform(part, 1.0) * obj.part_transform(part, 0.0).inverse();
     let palm1 = delta1.transform_point3(palm);
     let d_out = choose(palm1);
     // The arm on the side the hand comes from, as seen by a camera in front of the object.
     let cam_right = Vec3::Z.cross(f).normalize(); // looking along -f, right = (-f) x z = z x f
     let side = if d_in.dot(cam_right) < 0.0 { -1.0 } else { 1.0 };
-    Ok(Script { t_in, t_out, approach: cfg.approach_s, part, contact, d_in, d_out, travel: 0.45, side })
+    Ok(Script { t_in, t_out, approach, part, contact, d_in, d_out, travel: 0.45, side })
 }
 
 /// Where the wearer's head goes: while scanning, a walk along a wide arc in front
@@ -277,8 +291,8 @@ struct HeadPath {
 }
 
 impl HeadPath {
-    /// Head pose (OpenCV camera, upright) at time `s`.
-    fn camera(&self, s: f64) -> (Vec3, Mat3) {
+    /// Eye and the point looked at, at time `s` from the start of its scan.
+    fn eye_and_look(&self, s: f64) -> (Vec3, Vec3) {
         use std::f64::consts::PI;
         let u = s / self.total;
         // The scan's extra sweep is zero at its start and end, so the path is continuous.
@@ -291,10 +305,71 @@ impl HeadPath {
         let eye =
             self.target + self.distance * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()) + Vec3::Z * bob;
         let look = self.target + Vec3::new(0.03 * (3.1 * s).sin() as f32, 0.0, 0.03 * (2.3 * s).cos() as f32);
-        let z = (look - eye).normalize();
-        let x = z.cross(Vec3::Z).normalize();
-        let y = z.cross(x);
-        (eye, Mat3::from_cols(x, y, z))
+        (eye, look)
+    }
+}
+
+/// An upright OpenCV camera at `eye` looking at `look` (camera to world rotation).
+fn look_at(eye: Vec3, look: Vec3) -> Mat3 {
+    let z = (look - eye).normalize();
+    let x = z.cross(Vec3::Z).normalize();
+    let y = z.cross(x);
+    Mat3::from_cols(x, y, z)
+}
+
+/// One object's part of a recording: the walk to it (after the first), its scan,
+/// the motion and the time after; times in seconds from the recording's start.
+struct Segment {
+    object: ArticulatedObject,
+    head: HeadPath,
+    start: f64,
+    walk: f64,
+    script: Script,
+}
+
+impl Segment {
+    /// When its scan starts.
+    fn scan_start(&self) -> f64 {
+        self.start + self.walk
+    }
+
+    fn end(&self) -> f64 {
+        self.scan_start() + self.head.total
+    }
+}
+
+/// The whole recording: the objects' segments one after another.
+struct Choreography {
+    segments: Vec<Segment>,
+}
+
+impl Choreography {
+    /// The segment under way at time `s`.
+    fn segment_at(&self, s: f64) -> usize {
+        self.segments.iter().rposition(|g| g.start <= s).unwrap_or(0)
+    }
+
+    fn duration(&self) -> f64 {
+        self.segments.last().map_or(0.0, Segment::end)
+    }
+
+    /// Head pose (OpenCV camera, upright) at time `s`: on a segment's own path, or
+    /// walking from where the last one ended to where this one's scan starts.
+    fn camera(&self, s: f64) -> (Vec3, Mat3) {
+        let k = self.segment_at(s);
+        let g = &self.segments[k];
+        let (eye, look) = if s < g.scan_start() && k > 0 {
+            let prev = &self.segments[k - 1];
+            let (e0, l0) = prev.head.eye_and_look(prev.head.total);
+            let (e1, l1) = g.head.eye_and_look(0.0);
+            // Smooth start and stop.
+            let w = ((s - g.start) / g.walk).clamp(0.0, 1.0);
+            let w = (w * w * (3.0 - 2.0 * w)) as f32;
+            (e0.lerp(e1, w), l0.lerp(l1, w))
+        } else {
+            g.head.eye_and_look(s - g.scan_start())
+        };
+        (eye, look_at(eye, look))
     }
 
     /// Raw Aria RGB camera-to-world at time `s` (sensor mounted 90 degrees from
@@ -308,7 +383,69 @@ impl HeadPath {
         let t_device_camera = Se3::new(DQuat::from_xyzw(q[1], q[2], q[3], q[0]), DVec3::from_array(t));
         (t_world_camera, t_world_camera.compose(&t_device_camera.inverse()))
     }
+
+    /// Every object at its state at time `s` (before its interaction at rest, after it
+    /// where the hand left it), without the hand.
+    fn scene(&self, s: f64) -> PosedScene {
+        let mut scene = PosedScene::default();
+        for g in &self.segments {
+            let t = g.script.motion_time(s);
+            for (i, part) in g.object.parts.iter().enumerate() {
+                scene.push(part.clone(), i as u32, g.object.part_transform(i, t));
+            }
+        }
+        scene
+    }
+
+    /// The hand at time `s`, if one is out, with the segment it belongs to.
+    fn hand(&self, s: f64) -> Option<(HandState, &Script)> {
+        self.segments.iter().find_map(|g| g.script.hand(&g.object, s).map(|h| (h, &g.script)))
+    }
+
+    /// Whether `s` falls in a walk or a scan, before the segment's hand-in.
+    fn scanning(&self, s: f64) -> bool {
+        self.segments.iter().any(|g| s >= g.start && s < g.script.t_in)
+    }
+
+    /// The segments laid out: each object placed in a row (along x, on the first
+    /// one's floor, `OBJECT_GAP` apart), its window in time after the previous one.
+    fn plan(objects: &[ArticulatedObject], cfg: &RecordingConfig) -> Result<Self> {
+        let mut segments: Vec<Segment> = Vec::new();
+        let mut start = 0.0;
+        let mut row_end: Option<f32> = None;
+        let floor = objects.first().map_or(0.0, |o| swept_bounds(o).min.z);
+        for obj in objects {
+            let swept = swept_bounds(obj);
+            let offset = match row_end {
+                None => Vec3::ZERO,
+                Some(x) => {
+                    let rest = obj.posed(0.0).bounds().center();
+                    Vec3::new(x + OBJECT_GAP - swept.min.x, -rest.y, floor - swept.min.z)
+                }
+            };
+            let object = obj.translated(offset);
+            let swept = swept_bounds(&object);
+            row_end = Some(swept.max.x);
+            let walk = if segments.is_empty() { 0.0 } else { cfg.walk_s };
+            let t_in = start + walk + cfg.scan_s;
+            let script = plan(&object, t_in, t_in + cfg.motion_s, cfg.approach_s)?;
+            let head = HeadPath {
+                target: object.posed(0.0).bounds().center(),
+                distance: cfg.distance.unwrap_or(object.view.distance * 0.6),
+                front: f64::from(object.view.front_azimuth_deg.to_radians()),
+                scan_s: cfg.scan_s,
+                total: cfg.scan_s + cfg.motion_s + cfg.after_s,
+            };
+            let segment = Segment { object, head, start, walk, script };
+            start = segment.end();
+            segments.push(segment);
+        }
+        Ok(Choreography { segments })
+    }
 }
+
+/// Space between neighbouring objects' swept boxes (metres).
+const OBJECT_GAP: f32 = 1.2;
 
 /// The scan's sweep beyond the narrow arc, each way (radians).
 const SCAN_SWEEP: f64 = 0.6;
@@ -380,27 +517,30 @@ fn render_fisheye(
     image::RgbImage::from_raw(w, h, buf).unwrap_or_default()
 }
 
-/// Points on what the scan sees (the object at rest and the floor), as MPS's
+/// Points on what the scans see (the objects as they stand then, and the floor), as MPS's
 /// semidense_points.csv.gz holds them: each the surface along a random ray of a
 /// scan frame, displaced along the ray by noise of `SEMIDENSE_DIST_STD` of its
 /// distance (the SLAM's depth uncertainty grows with distance), with that
 /// standard deviation written beside it.
 fn write_semidense_points(
-    obj: &ArticulatedObject,
+    plan: &Choreography,
     cam: &CameraCalibration,
-    head: &HeadPath,
     cfg: &RecordingConfig,
     floor_z: f32,
     dir: &Path,
 ) -> Result<()> {
     use rand::{Rng, SeedableRng};
-    let scene = obj.posed(0.0);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(SEMIDENSE_SEED);
     let mut csv = String::from("uid,graph_uid,px_world,py_world,pz_world,inv_dist_std,dist_std\n");
-    let frames = (cfg.scan_s * cfg.fps).floor() as usize;
+    let frames = (plan.duration() * cfg.fps).floor() as usize;
     let mut uid = 0u64;
     for k in 0..frames {
-        let (t_wc, _) = head.poses(k as f64 / cfg.fps);
+        let s = k as f64 / cfg.fps;
+        if !plan.scanning(s) {
+            continue;
+        }
+        let scene = plan.scene(s);
+        let (t_wc, _) = plan.poses(s);
         let (rot, origin) = (t_wc.rotation.as_quat(), t_wc.translation.as_vec3());
         for _ in 0..SEMIDENSE_RAYS_PER_FRAME {
             let pixel = DVec2::new(rng.random_range(0.0..cam.width as f64), rng.random_range(0.0..cam.height as f64));
@@ -459,29 +599,25 @@ fn se3_row(t_us: i64, p: &Se3) -> String {
     s
 }
 
-/// Write a synthetic Aria-like recording of `obj` into `out`.
-pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Path) -> Result<RecordingSummary> {
+/// Write a synthetic Aria-like recording of `objects` (one interaction each, in
+/// order) into `out`.
+pub fn write_recording(objects: &[ArticulatedObject], cfg: &RecordingConfig, out: &Path) -> Result<RecordingSummary> {
     if !(cfg.fps > 0.0 && cfg.scan_s > cfg.approach_s && cfg.motion_s > 0.0 && cfg.after_s > cfg.approach_s) {
         return Err(Error::Config("recording needs fps > 0, scan and after longer than the approach".into()));
+    }
+    let walks = cfg.walk_s > 0.0;
+    if objects.is_empty() || (objects.len() > 1 && !walks) {
+        return Err(Error::Config("recording needs an object (and a walk between several)".into()));
     }
     for d in ["frames", "mps/slam", "mps/hand_tracking", "gt"] {
         std::fs::create_dir_all(out.join(d)).map_err(|e| Error::io(out.join(d), e))?;
     }
     let native = aria_rgb_native();
     let cam = native.rescaled_to(cfg.resolution, cfg.resolution).map_err(Error::Config)?;
-    let script = plan(obj, cfg)?;
-    let total = cfg.scan_s + cfg.motion_s + cfg.after_s;
-    let region = swept_bounds(obj);
-    let target = obj.posed(0.0).bounds().center();
-    let distance = cfg.distance.unwrap_or(obj.view.distance * 0.6);
-    let head = HeadPath {
-        target,
-        distance,
-        front: f64::from(obj.view.front_azimuth_deg.to_radians()),
-        scan_s: cfg.scan_s,
-        total,
-    };
-    let floor_z = region.min.z;
+    let plan = Choreography::plan(objects, cfg)?;
+    let total = plan.duration();
+    let regions: Vec<Aabb> = plan.segments.iter().map(|g| swept_bounds(&g.object)).collect();
+    let floor_z = regions[0].min.z;
     let hand = hand_part();
     let lighting = Lighting::default();
 
@@ -490,12 +626,12 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     let mut ts_csv = String::from("file,timestamp_ns\n");
     for k in 0..n {
         let s = k as f64 / cfg.fps;
-        let (t_wc, _) = head.poses(s);
-        let mut scene = obj.posed(script.motion_time(s));
+        let (t_wc, _) = plan.poses(s);
+        let mut scene = plan.scene(s);
         if cfg.hand {
-            if let Some(h) = script.hand(obj, s) {
+            if let Some((h, script)) = plan.hand(s) {
                 scene.push(hand.clone(), HAND_ID, h.pose);
-                let (eye, r_up) = head.camera(s);
+                let (eye, r_up) = plan.camera(s);
                 let shoulder = eye + r_up * Vec3::new(0.2 * script.side, 0.3, -0.05);
                 let wrist = h.pose.transform_point3(Vec3::new(0.1, 0.0, 0.0));
                 scene.push(arm_part(wrist, shoulder), HAND_ID, glam::Affine3A::IDENTITY);
@@ -535,7 +671,7 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     let steps = ((total + 0.1) * 1000.0) as i64;
     for k in -50..steps {
         let s = k as f64 / 1000.0;
-        let (_, t_wd) = head.poses(s);
+        let (_, t_wd) = plan.poses(s);
         traj.push_str(&se3_row(start_us + k * 1000, &t_wd));
     }
     write_atomic(&out.join("mps/slam/closed_loop_trajectory.csv"), traj.as_bytes())?;
@@ -548,10 +684,10 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     for k in 0..=hsteps {
         let s = k as f64 / 30.0;
         let t_us = start_us + (s * 1e6).round() as i64;
-        let hand_now = if cfg.hand { script.hand(obj, s) } else { None };
+        let hand_now = if cfg.hand { plan.hand(s) } else { None };
         match hand_now {
-            Some(h) => {
-                let (_, t_wd) = head.poses(s);
+            Some((h, _)) => {
+                let (_, t_wd) = plan.poses(s);
                 let t_dw = t_wd.inverse();
                 let palm = t_dw.transform_point(h.pose.transform_point3(Vec3::ZERO).as_dvec3());
                 let wrist = t_dw.transform_point(h.pose.transform_point3(Vec3::new(0.07, 0.0, 0.0)).as_dvec3());
@@ -565,28 +701,52 @@ pub fn write_recording(obj: &ArticulatedObject, cfg: &RecordingConfig, out: &Pat
     }
     write_atomic(&out.join("mps/hand_tracking/wrist_and_palm_poses.csv"), ht.as_bytes())?;
 
-    write_semidense_points(obj, &cam, &head, cfg, floor_z, &out.join("mps/slam"))?;
+    write_semidense_points(&plan, &cam, cfg, floor_z, &out.join("mps/slam"))?;
 
-    let region_json = serde_json::json!({ "min": region.min.to_array(), "max": region.max.to_array() });
+    let region_json = |b: &Aabb| serde_json::json!({ "min": b.min.to_array(), "max": b.max.to_array() });
+    let region_json = match regions.as_slice() {
+        [one] => region_json(one),
+        several => serde_json::Value::Array(several.iter().map(region_json).collect()),
+    };
     write_atomic(&out.join("object_region.json"), &serde_json::to_vec_pretty(&region_json).unwrap_or_default())?;
 
-    write_ground_truth(obj, &out.join("gt"))?;
+    if let [one] = plan.segments.as_slice() {
+        write_ground_truth(&one.object, &out.join("gt"))?;
+    } else {
+        for (k, g) in plan.segments.iter().enumerate() {
+            write_ground_truth(&g.object, &object_ground_truth(out, k).join("gt"))?;
+        }
+    }
     let frame_at = |t: f64| ((t * cfg.fps - 1e-9).ceil().max(0.0)) as usize;
+    let interactions = plan
+        .segments
+        .iter()
+        .map(|g| InteractionSummary {
+            object: g.object.name.clone(),
+            touched_part: g.script.part,
+            hand_in_ns: START_NS + (g.script.t_in * 1e9).round() as i64,
+            hand_out_ns: START_NS + (g.script.t_out * 1e9).round() as i64,
+            hand_in_s: START_NS as f64 * 1e-9 + g.script.t_in,
+            hand_out_s: START_NS as f64 * 1e-9 + g.script.t_out,
+            hand_in_frame: frame_at(g.script.t_in),
+            hand_out_frame: frame_at(g.script.t_out),
+        })
+        .collect();
     let summary = RecordingSummary {
-        object: obj.name.clone(),
+        objects: objects.iter().map(|o| o.name.clone()).collect(),
         frames: n,
         resolution: cfg.resolution,
         fps: cfg.fps,
         hand: cfg.hand,
-        hand_in_ns: START_NS + (script.t_in * 1e9).round() as i64,
-        hand_out_ns: START_NS + (script.t_out * 1e9).round() as i64,
-        hand_in_s: START_NS as f64 * 1e-9 + script.t_in,
-        hand_out_s: START_NS as f64 * 1e-9 + script.t_out,
-        hand_in_frame: frame_at(script.t_in),
-        hand_out_frame: frame_at(script.t_out),
-        touched_part: script.part,
+        interactions,
     };
     let window = serde_json::to_vec_pretty(&summary).unwrap_or_default();
     write_atomic(&out.join("gt/window.json"), &window)?;
     Ok(summary)
+}
+
+/// Where a recording of several objects keeps object `k`'s (0-based) ground truth:
+/// a folder with gt/ inside, as a synthetic dataset has.
+pub fn object_ground_truth(recording: &Path, k: usize) -> std::path::PathBuf {
+    recording.join(format!("object_{}", k + 1))
 }

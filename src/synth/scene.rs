@@ -57,6 +57,16 @@ impl Part {
         Some(LocalHit { t, normal, primitive })
     }
 
+    /// The part moved by `offset`.
+    pub fn translated(&self, offset: Vec3) -> Self {
+        let primitives = self
+            .primitives
+            .iter()
+            .map(|p| Primitive { shape: p.shape.translated(offset), material: p.material })
+            .collect();
+        Part::new(self.name.clone(), primitives)
+    }
+
     /// Closed triangle mesh of the part at rest (cylinders with `segments` sides).
     pub fn mesh(&self, segments: u32) -> MeshData {
         let mut m = MeshData::default();
@@ -135,6 +145,16 @@ pub struct ArticulatedObject {
 }
 
 impl ArticulatedObject {
+    /// The object moved by `offset`: its parts and its joints' axis lines with it.
+    pub fn translated(&self, offset: Vec3) -> Self {
+        ArticulatedObject {
+            name: self.name.clone(),
+            parts: self.parts.iter().map(|p| Arc::new(p.translated(offset))).collect(),
+            joints: self.joints.iter().map(|j| Joint { origin: j.origin + offset, ..*j }).collect(),
+            view: self.view,
+        }
+    }
+
     /// The joint that moves `part`, if any.
     pub fn joint_of(&self, part: usize) -> Option<&Joint> {
         self.joints.iter().find(|j| j.part == part)

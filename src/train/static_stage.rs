@@ -303,6 +303,42 @@ pub struct RunSetup<'a> {
     pub resume: bool,
     /// Initial points (a fresh run only); None = random points in the configured box.
     pub init: Option<&'a PointCloud>,
+    /// More training views arriving while it trains (a live session's scan), in
+    /// order; the set is complete when their sender is dropped. Iteration i trains
+    /// on the first `1 + i / ITERATIONS_PER_ARRIVING_VIEW` views (waiting for them
+    /// when they have not arrived), so the result does not depend on when they did.
+    pub arriving: Option<&'a crossbeam_channel::Receiver<TrainView>>,
+}
+
+/// Iterations trained per view of a scan that arrives while stage I trains: a
+/// 45-frame scan is in by iteration 450 of the cpu preset's 3000, and at ~50
+/// iterations a second the trainer asks for 5 frames a second, fewer than a
+/// capture delivers.
+pub const ITERATIONS_PER_ARRIVING_VIEW: u32 = 10;
+
+/// The training views of a run whose scan arrives while it trains.
+struct ArrivingViews<'a> {
+    views: &'a crossbeam_channel::Receiver<TrainView>,
+    closed: bool,
+}
+
+impl ArrivingViews<'_> {
+    /// How many of `train` iteration `iteration` may train on, after taking in
+    /// (waiting for) the views it needs; the scene extent follows the cameras.
+    fn admit(&mut self, train: &mut Vec<TrainView>, trainer: &mut GaussianTrainer, iteration: u32) -> usize {
+        let allowed = 1 + (iteration / ITERATIONS_PER_ARRIVING_VIEW) as usize;
+        let before = train.len();
+        while train.len() < allowed && !self.closed {
+            match self.views.recv() {
+                Ok(v) => train.push(v),
+                Err(_) => self.closed = true,
+            }
+        }
+        if train.len() > before {
+            trainer.extent = camera_extent(train);
+        }
+        allowed.min(train.len())
+    }
 }
 
 /// Train stage I into `run_dir`: resume from its checkpoint if asked, checkpoint
@@ -337,8 +373,10 @@ pub fn run_static(
     let toml_text = toml::to_string(&config).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&paths.config(), toml_text.as_bytes())?;
 
-    let eval_views = if test.is_empty() { train } else { test };
+    let mut arriving = setup.arriving.map(|views| ArrivingViews { views, closed: false });
+    let mut train: std::borrow::Cow<[TrainView]> = std::borrow::Cow::Borrowed(train);
     if viz.is_enabled() {
+        let eval_views = if test.is_empty() { &train[..] } else { test };
         viz.set_iteration(trainer.iteration);
         for (i, v) in train.iter().enumerate() {
             viz.camera(&format!("world/train_cameras/{i:03}"), &v.camera);
@@ -351,7 +389,14 @@ pub fn run_static(
             save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before + start.elapsed().as_secs_f64())?;
             return Ok(RunOutcome::Interrupted(trainer.iteration));
         }
-        let report = trainer.step(train);
+        let usable = match &mut arriving {
+            None => train.len(),
+            Some(a) => {
+                let iteration = trainer.iteration;
+                a.admit(train.to_mut(), &mut trainer, iteration)
+            }
+        };
+        let report = trainer.step(&train[..usable]);
         if let Some(bad) = trainer.gaussians.first_non_finite() {
             return Err(Error::Other(format!(
                 "training diverged at iteration {}: non-finite {:?}",
@@ -366,7 +411,7 @@ pub fn run_static(
             viz.scalar("train/gaussians", report.gaussians as f64);
         }
         if config.viz_interval > 0 && report.iteration % config.viz_interval == 0 {
-            log_state(viz, &trainer, &eval_views[0]);
+            log_state(viz, &trainer, if test.is_empty() { &train[0] } else { &test[0] });
         }
         if config.checkpoint_interval > 0 && trainer.iteration % config.checkpoint_interval == 0 {
             save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before + start.elapsed().as_secs_f64())?;
@@ -376,6 +421,7 @@ pub fn run_static(
     save_checkpoint(&paths.checkpoint(), &trainer, elapsed_before)?;
     crate::splat::ply::write_ply(&paths.static_ply(), &trainer.gaussians)?;
 
+    let eval_views = if test.is_empty() { &train[..] } else { test };
     let metrics = trainer.evaluate(eval_views);
     std::fs::create_dir_all(paths.test_dir()).map_err(|e| Error::io(paths.test_dir(), e))?;
     let bg = Vec3::from(config.eval_background);

@@ -400,6 +400,13 @@ const STREAM_BACKGROUND: u64 = 21;
 /// A piece of the part the hand moved stays in it only when it explains the
 /// frames better moving than at rest by more than this (relative to the loss).
 const HELD_PIECE_MARGIN: f32 = 1e-3;
+/// The held part's end amount is looked for between the palm's last and this
+/// fraction of it, in `HELD_END_STEPS` steps, then `HELD_END_FINE` finer steps
+/// each side of the best, on at most `HELD_END_VIEWS` end-state views.
+const HELD_END_LEAST: f32 = 0.7;
+const HELD_END_STEPS: usize = 24;
+const HELD_END_FINE: i32 = 4;
+const HELD_END_VIEWS: usize = 16;
 const STREAM_FRAMES: u64 = 22;
 const STREAM_END_VIEWS: u64 = 23;
 
@@ -527,6 +534,65 @@ impl NodeTracker {
             let centre = self.labelled_centroid(&node_part, 1);
             self.articulation =
                 Some(TrackedParts { node_part, centres: vec![centre], poses: vec![vec![NodePose::IDENTITY]] });
+            self.stop_where_the_end_state_shows(end_views);
+        }
+    }
+
+    /// Where the held part came to rest, read off the end state. The palm's path
+    /// runs on past it when the hand leaves along the part's own path (pulling
+    /// away from a drawer, a door) before the hand-out is detected, a few frames
+    /// late: the fridge recording's palm reached 112.5 degrees for a 110-degree
+    /// door, a drawer's 0.42 m for 0.35. So the end amount is, of the palm's last
+    /// and less (down to `HELD_END_LEAST` of it), the one whose pose explains the
+    /// end-state views best, and the palm's motion stops there. Only less: the
+    /// palm moved the part that far, and a part let go of does not travel on.
+    fn stop_where_the_end_state_shows(&mut self, end_views: &[TrainView]) {
+        let (Some(parts), Some(motion)) =
+            (self.articulation.as_ref(), self.contact.as_ref().and_then(|c| c.motion.as_ref()))
+        else {
+            return;
+        };
+        if end_views.is_empty() {
+            return;
+        }
+        let views = evenly_spread(&end_views.iter().collect::<Vec<_>>(), HELD_END_VIEWS);
+        let palm_end = motion.amount_at(1.0);
+        let losses = |amounts: &[f32]| {
+            let poses: Vec<NodePose> = amounts.iter().map(|&a| motion.pose_at_amount(parts.centres[0], a)).collect();
+            self.end_losses_of_part_poses(parts, 0, &poses, &views)
+        };
+        let best = |losses: &[f32]| (0..losses.len()).min_by(|&a, &b| losses[a].total_cmp(&losses[b])).unwrap_or(0);
+        // A coarse grid from the palm's end down, then a fine one about its best.
+        let step = palm_end * (1.0 - HELD_END_LEAST) / HELD_END_STEPS as f32;
+        let coarse: Vec<f32> = (0..=HELD_END_STEPS).map(|k| palm_end - step * k as f32).collect();
+        let coarse_losses = losses(&coarse);
+        tracing::debug!(?coarse, ?coarse_losses, "stage II: the held part's end amounts tried");
+        let around = best(&coarse_losses);
+        let fine: Vec<f32> = (-HELD_END_FINE..=HELD_END_FINE)
+            .map(|k| coarse[around] + step * k as f32 / (HELD_END_FINE + 1) as f32)
+            .filter(|a| a * palm_end.signum() <= palm_end.abs())
+            .collect();
+        let fine_losses = losses(&fine);
+        let k = best(&fine_losses);
+        // A resting place is a minimum clearly below both ends of the range (by the
+        // margin the end-pose search asks of a replacement): the palm's end, and the
+        // far end, where a loss still falling says the end state is explained better
+        // and better by moving the part away (content the start state lacks: a door
+        // opened towards the wearer shows its never-seen inside face), not where it rests.
+        let clearly_below = |l: f32| fine_losses[k] < l * (1.0 - self.config.track.merge_tolerance);
+        if !(clearly_below(coarse_losses[0]) && clearly_below(coarse_losses[HELD_END_STEPS])) {
+            tracing::info!(
+                palm = palm_end,
+                best = fine[k],
+                "stage II: no clear resting place of the held part on the end state"
+            );
+            return;
+        }
+        let end = fine[k];
+        tracing::info!(palm = palm_end, end, "stage II: where the held part came to rest, on the end state");
+        let stopped = motion.stopped_at(end);
+        if let Some(c) = &mut self.contact {
+            c.motion = Some(stopped);
         }
     }
 
@@ -1224,7 +1290,9 @@ impl NodeTracker {
     pub fn refit_end_poses(&mut self, end_views: &[TrainView]) -> Option<f32> {
         let iterations = self.config.track.end_iterations;
         let n_parts = self.articulation.as_ref().map_or(0, |a| a.centres.len());
-        if end_views.is_empty() || iterations == 0 || n_parts == 0 {
+        // The part the hand held moves only as the palm did: alone, nothing to fit.
+        let only_held = n_parts == 1 && self.held_part() == Some(0);
+        if end_views.is_empty() || iterations == 0 || n_parts == 0 || only_held {
             return None;
         }
         let c = self.config.clone();
@@ -2098,11 +2166,9 @@ mod tests {
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after a second search: {}", error(&tracker));
     }
 
-    #[test]
-    fn a_global_search_finds_a_small_slider_moved_far_beyond_its_size() {
-        // A textured bar in y = 0 and a red slider on it, 0.06 long, that truly
-        // ends 0.5 along x (a knife's slider pushed to the tip); the tracked end
-        // pose left it at rest.
+    /// A textured bar in y = 0 and a red slider on it, 0.06 long, at x -0.3:
+    /// the tracker (one node per Gaussian) and the slider's node labels.
+    fn slider_on_a_bar() -> (NodeTracker, Vec<usize>) {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let mut gs = GaussianSet::new(0);
         for _ in 0..600 {
@@ -2127,8 +2193,16 @@ mod tests {
         config.track.end_iterations = 100;
         config.track.search_step = std::f32::consts::PI / 12.0;
         config.eval_background = [0.0; 3];
-        let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
+        let tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
         let node_part: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.y > 0.015)).collect();
+        (tracker, node_part)
+    }
+
+    #[test]
+    fn a_global_search_finds_a_small_slider_moved_far_beyond_its_size() {
+        // The slider truly ends 0.5 along x (a knife's slider pushed to the tip);
+        // the tracked end pose left it at rest.
+        let (mut tracker, node_part) = slider_on_a_bar();
         let truth = NodePose { rotation: Quat::IDENTITY, translation: Vec3::new(0.5, 0.0, 0.0) };
         let (members, parts, true_set) = one_part_left_at_rest(&mut tracker, node_part, |_| truth);
         assert!(members.len() > 40, "the slider's Gaussians: {}", members.len());
@@ -2140,6 +2214,40 @@ mod tests {
         let now = tracker.deformed(&tracker.knots[1], &vec![0.0; n]);
         let error = members.iter().map(|&i| now.mean(i).distance(true_set.mean(i))).fold(0.0f32, f32::max);
         assert!(error < 0.02, "largest slider Gaussian offset after the search: {error}");
+    }
+
+    #[test]
+    fn a_held_part_stops_where_the_end_state_shows_it() {
+        // The hand pushed the slider to 0.5 and, letting go, went on along the
+        // bar: its palm's path ends at 0.6.
+        let palm = |end: f32| contact::HandMotion {
+            kind: crate::motion::JointKind::Prismatic,
+            axis: Vec3::X,
+            origin: Vec3::new(-0.3, 0.03, 0.0),
+            samples: (0..=10).map(|i| (i as f32 / 10.0, end * i as f32 / 10.0)).collect(),
+            radius: 0.0,
+            residual: 0.0,
+        };
+        let end_amount = |true_end: f32| {
+            let (mut tracker, node_part) = slider_on_a_bar();
+            let truth = NodePose { rotation: Quat::IDENTITY, translation: Vec3::new(true_end, 0.0, 0.0) };
+            let (_, parts, true_set) = one_part_left_at_rest(&mut tracker, node_part, |_| truth);
+            let k = Intrinsics { width: 64, height: 64, fx: 60.0, fy: 60.0, cx: 32.0, cy: 32.0 };
+            let views = ring_views(&true_set, k, 1.6, 1.4, 0.3);
+            let node = parts.node_part.iter().position(|&p| p == 1).expect("a slider node") as u32;
+            tracker.articulation = Some(parts);
+            let point = Vec3::new(-0.3, 0.03, 0.0);
+            tracker.contact = Some(HandContact { point, time: 0.0, node, motion: Some(palm(0.6)) });
+            tracker.stop_where_the_end_state_shows(&views);
+            let motion = tracker.contact.and_then(|c| c.motion).expect("the palm's motion");
+            (motion.amount_at(1.0), motion.amount_at(0.5))
+        };
+        let (end, half_way) = end_amount(0.5);
+        assert!((end - 0.5).abs() < 0.01, "the slider rests at 0.5, found {end}");
+        assert_eq!(half_way, 0.3, "before it stopped the part moves as the palm did");
+        // Where the end state shows it at the palm's end, the palm's end stands.
+        let (end, _) = end_amount(0.6);
+        assert!((end - 0.6).abs() < 0.01, "the slider rests at 0.6, found {end}");
     }
 
     /// An end-state (t = 1) view of `set` from `camera`, over black (so the

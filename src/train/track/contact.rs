@@ -232,7 +232,11 @@ impl HandMotion {
 
     /// The motion at time `t` as a pose about centre `c`.
     pub fn pose_about(&self, c: Vec3, t: f32) -> NodePose {
-        let amount = self.amount_at(t);
+        self.pose_at_amount(c, self.amount_at(t))
+    }
+
+    /// The pose about centre `c` after turning or sliding by `amount`.
+    pub fn pose_at_amount(&self, c: Vec3, amount: f32) -> NodePose {
         match self.kind {
             JointKind::Prismatic => NodePose { rotation: glam::Quat::IDENTITY, translation: self.axis * amount },
             JointKind::Revolute => {
@@ -240,6 +244,16 @@ impl HandMotion {
                 NodePose { rotation, translation: rotation * (c - self.origin) + self.origin - c }
             }
         }
+    }
+}
+
+impl HandMotion {
+    /// The same motion stopped at `end` (an amount between 0 and the palm's
+    /// last): the part goes no further than that, whatever the palm did after.
+    pub fn stopped_at(&self, end: f32) -> Self {
+        let beyond = |a: f32| a * end.signum() > end.abs();
+        let samples = self.samples.iter().map(|&(t, a)| (t, if beyond(a) { end } else { a })).collect();
+        HandMotion { samples, ..self.clone() }
     }
 }
 
@@ -427,6 +441,32 @@ mod tests {
         assert!(off.length() < 0.02, "origin {:?}", m.origin);
         let turned = m.amount_at(1.0).abs().max(m.amount_at(14.0 / 15.0).abs());
         assert!((turned - 60f32.to_radians()).abs() < 3f32.to_radians(), "{} deg", turned.to_degrees());
+    }
+
+    #[test]
+    fn a_motion_stopped_short_holds_still_from_there() {
+        let drawer = HandMotion {
+            kind: JointKind::Prismatic,
+            axis: -Vec3::Y,
+            origin: Vec3::ZERO,
+            samples: (0..=10).map(|i| (i as f32 / 10.0, 0.042 * i as f32)).collect(),
+            radius: 0.0,
+            residual: 0.0,
+        };
+        let stopped = drawer.stopped_at(0.35);
+        assert_eq!(stopped.amount_at(0.5), drawer.amount_at(0.5), "before the stop, as the palm");
+        assert_eq!((stopped.amount_at(0.9), stopped.amount_at(1.0)), (0.35, 0.35));
+        assert!(drawer.amount_at(0.9) > 0.35);
+        let c = Vec3::new(0.0, 0.1, 0.2);
+        assert!(stopped.pose_about(c, 1.0).translation.distance(Vec3::new(0.0, -0.35, 0.0)) < 1e-6);
+        // A turn the other way (negative angles) stops at its own end.
+        let door = HandMotion {
+            kind: JointKind::Revolute,
+            samples: drawer.samples.iter().map(|&(t, a)| (t, -5.0 * a)).collect(),
+            ..drawer.clone()
+        };
+        assert_eq!(door.stopped_at(-1.9).amount_at(1.0), -1.9);
+        assert_eq!(door.stopped_at(-1.9).amount_at(0.5), door.amount_at(0.5));
     }
 
     #[test]
