@@ -212,6 +212,7 @@ fn aim_run_logs_the_session_to_rerun() {
         "/train/psnr",
         "/stage2/psnr",
         "/stage2/tracked/t1",
+        "/stage2/preview/render",
     ] {
         assert!(listing.contains(entity), "{entity} missing from the recording");
     }

@@ -90,10 +90,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         SessionEvent::Window(w) => println!("motion window: {w:?}"),
         SessionEvent::StageOneStarted { interaction, object, views } => {
             stage_one.restart();
-            println!(
-                "interaction {}: stage I on {views} frames of object {object} before its hand-in, while the motion arrives",
-                interaction + 1
-            )
+            println!("interaction {}: stage I starts on {views} frame(s) of object {object}", interaction + 1)
         }
         SessionEvent::StageOne(r) => {
             stage_one.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians))

@@ -325,7 +325,7 @@ fn run_node_track(
         // One segment is a few seconds of work: checkpoint after each.
         if fit.segments_done < tracker.segments() {
             save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
-            log_tracked(control.viz, &tracker);
+            log_tracked(control.viz, &tracker, &frames);
         }
         progress(&step);
     }
@@ -372,7 +372,7 @@ fn run_node_track(
     let track = postcard::to_stdvec(&tracker.knots)
         .map_err(|e| Error::Other(format!("encoding the tracked node poses: {e}")))?;
     write_atomic(&out.join("track.bin"), &track)?;
-    log_tracked(control.viz, &tracker);
+    log_tracked(control.viz, &tracker, &frames);
     if parts.is_empty() {
         tracing::warn!(
             "no moving part found: nothing in the motion video moved by more than {} rad or {} (sdmd_max_rotation, sdmd_max_translation)",
@@ -451,12 +451,26 @@ fn load_track_checkpoint(path: &Path) -> Result<(NodeTracker, f64)> {
 }
 
 /// Log the tracked Gaussians at t = 0, 0.5, 1 to rerun.
-fn log_tracked(viz: &Viz, tracker: &NodeTracker) {
+fn log_tracked(viz: &Viz, tracker: &NodeTracker, frames: &[TrainView]) {
     if !viz.is_enabled() {
         return;
     }
     for (name, t) in [("t0", 0.0), ("t05", 0.5), ("t1", 1.0)] {
         viz.gaussians(&format!("stage2/tracked/{name}"), &tracker.deformed_at(t));
+    }
+    // A preview: the model as tracked so far, rendered from the motion frame
+    // nearest the last time fitted, beside that frame.
+    let t = tracker.segments_done as f32 / tracker.segments().max(1) as f32;
+    let nearest = frames.iter().min_by(|a, b| {
+        let d = |v: &TrainView| (v.time.unwrap_or(0.0) - t).abs();
+        d(a).total_cmp(&d(b))
+    });
+    if let Some(frame) = nearest {
+        let bg = glam::Vec3::from(tracker.config.eval_background);
+        let r = crate::render::render(&tracker.deformed_at(t), &frame.camera, &frame.render_options(bg));
+        viz.camera("stage2/preview", &frame.camera);
+        viz.image_rgb("stage2/preview/render", r.width, r.height, &r.image.color);
+        viz.image_rgb("stage2/preview/frame", r.width, r.height, &frame.target(bg));
     }
 }
 
