@@ -310,11 +310,13 @@ pub struct RunSetup<'a> {
     pub arriving: Option<&'a crossbeam_channel::Receiver<TrainView>>,
 }
 
-/// Iterations trained per view of a scan that arrives while stage I trains: a
-/// 45-frame scan is in by iteration 450 of the cpu preset's 3000, and at ~50
-/// iterations a second the trainer asks for 5 frames a second, fewer than a
-/// capture delivers.
-pub const ITERATIONS_PER_ARRIVING_VIEW: u32 = 10;
+/// Iterations trained per view of a scan that arrives while stage I trains: the
+/// cpu preset's 3000 iterations take in up to 750 views (a 50 s scan at 15 fps; the
+/// session's frame store keeps at most 512 before it thins out), and at ~50
+/// iterations a second the trainer asks for 12.5 frames a second, about what a
+/// capture delivers (a slower one makes it wait). With 10, a scan's frames past
+/// the 300th were never trained on.
+pub const ITERATIONS_PER_ARRIVING_VIEW: u32 = 4;
 
 /// The training views of a run whose scan arrives while it trains.
 struct ArrivingViews<'a> {
