@@ -20,6 +20,6 @@ fn main() -> anyhow::Result<()> {
         SessionEvent::StageTwoStarted { motion, end, .. } => {
             println!("stages II and III on {motion} motion and {end} end-state frames")
         }
-        SessionEvent::StageOne(_) | SessionEvent::StageTwo(_) => {}
+        SessionEvent::StageOne(_) | SessionEvent::StageTwo(_) | SessionEvent::Articulated { .. } => {}
     })
 }

@@ -11,14 +11,10 @@
 mod common;
 
 use aim::stream::SessionEvent;
-use aim_capture::ingest::Policy;
 
 fn main() -> anyhow::Result<()> {
     let (recording, out) = common::input_and_output("aim-example-live-preview")?;
-    let live = |cfg: &mut aim::stream::SessionConfig| {
-        cfg.ingest.policy = Policy::Live;
-        cfg.ingest.realtime = true;
-    };
+    let live = |cfg: &mut aim::stream::SessionConfig| cfg.go_live();
     common::run(&recording, &out, live, &aim::viz::Viz::disabled(), &|e| match e {
         SessionEvent::Window(w) => println!("live: {w:?}"),
         SessionEvent::StageOneStarted { views, .. } => println!("live: stage I starts on {views} scan frames"),
@@ -28,6 +24,9 @@ fn main() -> anyhow::Result<()> {
         SessionEvent::StageTwoStarted { motion, end, .. } => println!("live: stage II on {motion} + {end} frames"),
         SessionEvent::StageTwo(s) if s.iteration % 720 == 0 => {
             println!("live: stage II {} PSNR {:.2} dB", s.iteration, s.psnr)
+        }
+        SessionEvent::Articulated { parts, hand_out_to_articulation_s: Some(lag), .. } => {
+            println!("live: {} part(s) and their joints {lag:.1} s after hand-out", parts.len())
         }
         _ => {}
     })

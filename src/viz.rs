@@ -6,6 +6,9 @@ use std::path::PathBuf;
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
+use crate::motion::JointEstimate;
+#[cfg(feature = "rerun")]
+use crate::motion::JointKind;
 use crate::splat::GaussianSet;
 
 /// Where the log goes.
@@ -116,6 +119,37 @@ impl Viz {
         }
         #[cfg(not(feature = "rerun"))]
         let _ = (path, gs);
+    }
+
+    /// Joints as arrows, labelled with their type and amount: a revolute axis as
+    /// a 0.5 m arrow centred on its pivot, a prismatic joint as its travel from
+    /// the part's centre.
+    pub fn joints(&self, path: &str, joints: &[JointEstimate]) {
+        #[cfg(feature = "rerun")]
+        if let Some(rec) = &self.rec {
+            const REVOLUTE_ARROW: f64 = 0.5;
+            let (origins, vectors): (Vec<[f32; 3]>, Vec<[f32; 3]>) = joints
+                .iter()
+                .map(|j| match j.kind {
+                    JointKind::Revolute => (j.origin - j.axis * (REVOLUTE_ARROW / 2.0), j.axis * REVOLUTE_ARROW),
+                    JointKind::Prismatic => (j.origin, j.axis * j.amount),
+                })
+                .map(|(o, v)| (o.as_vec3().to_array(), v.as_vec3().to_array()))
+                .unzip();
+            let labels: Vec<String> = joints
+                .iter()
+                .enumerate()
+                .map(|(k, j)| match j.kind {
+                    JointKind::Revolute => format!("part {}: revolute {:.1} deg", k + 1, j.amount.to_degrees()),
+                    JointKind::Prismatic => format!("part {}: prismatic {:.3}", k + 1, j.amount),
+                })
+                .collect();
+            log_or_warn(
+                rec.log(path, &rerun::Arrows3D::from_vectors(vectors).with_origins(origins).with_labels(labels)),
+            );
+        }
+        #[cfg(not(feature = "rerun"))]
+        let _ = (path, joints);
     }
 
     /// A camera: its pose (camera-to-world) and pinhole, OpenCV axes.

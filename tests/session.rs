@@ -213,6 +213,7 @@ fn aim_run_logs_the_session_to_rerun() {
         "/stage2/psnr",
         "/stage2/tracked/t1",
         "/stage2/preview/render",
+        "/stage3/joints",
     ] {
         assert!(listing.contains(entity), "{entity} missing from the recording");
     }
@@ -337,7 +338,10 @@ fn aim_run_live_paces_the_recording_and_reports_how_far_the_twin_lags() {
     let interaction = &report["interactions"][0];
     let wall = report["wall_s"].as_f64().expect("wall time");
     let lag = interaction["hand_out_to_twin_s"].as_f64().expect("a hand-out");
-    let timing = format!("wall {wall} s, lag {lag} s");
+    let articulated = interaction["hand_out_to_articulation_s"].as_f64().expect("a hand-out");
+    let timing = format!("wall {wall} s, lag {lag} s, articulation after {articulated} s");
+    // The articulation is known before the meshes and the export that make the twin.
+    assert!(articulated > 0.0 && articulated <= lag, "{timing}");
     // Paced: the frames arrive over the recording's own length, so the session
     // cannot end sooner; the twin follows the hand-out, within the session.
     let recorded = (summary.frames - 1) as f64 / summary.fps;

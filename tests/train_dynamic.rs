@@ -136,7 +136,7 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
 
     use aim::mesh::tsdf::TsdfConfig;
     use aim::train::config::StageConfig;
-    use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput};
+    use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput, StageTwoProgress};
     use aim::train::dynamic_stage::DynamicConfig;
 
     let root = tmp("resume");
@@ -162,8 +162,9 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
     let never = AtomicBool::new(false);
     let run = |out: &str, control: &RunControl, stop_after: Option<u32>| {
         let input = StageTwoInput::load(&data, &dyn_cfg).expect("dataset");
-        run_dynamic(input, &static_ply, &root.join(out), dyn_cfg.clone(), &mesh, control, |s| {
-            if stop_after.is_some_and(|k| s.iteration >= k) {
+        run_dynamic(input, &static_ply, &root.join(out), dyn_cfg.clone(), &mesh, control, |p| {
+            let stop = matches!(p, StageTwoProgress::Step(s) if stop_after.is_some_and(|k| s.iteration >= k));
+            if stop {
                 control.interrupt.store(true, Ordering::SeqCst);
             }
         })

@@ -44,8 +44,9 @@ pub struct Args {
     pub dynamic_iterations: Option<u32>,
     /// Emulate a live capture: frames are handed over at their recorded rate,
     /// the oldest buffered frame is dropped when training falls behind (counted
-    /// in session.json), and the time from hand-out to the twin is reported.
-    /// Without it, a replay never drops a frame.
+    /// in session.json), stage I runs 80 % of its schedule (for a sooner
+    /// articulation), and the time from hand-out to the articulation and to
+    /// the twin is reported. Without it, a replay never drops a frame.
     #[arg(long)]
     pub live: bool,
     #[command(flatten)]
@@ -65,8 +66,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     cfg.stage_two =
         DynamicConfig::resolve(args.dynamic_config.as_deref(), &args.preset, args.seed, args.dynamic_iterations)?;
     if args.live {
-        cfg.ingest.policy = aim_capture::ingest::Policy::Live;
-        cfg.ingest.realtime = true;
+        cfg.go_live();
     }
     let (opened, reference) = match dataset_layout(&args.input) {
         Some(layout) => {
@@ -104,6 +104,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
         SessionEvent::StageTwo(s) => stage_two.update(s.iteration, || format!("psnr {:.2}", s.psnr)),
+        SessionEvent::Articulated { interaction, parts, hand_out_to_articulation_s } => {
+            stage_two.finish();
+            println!(
+                "interaction {}: {} moving part(s) and their joints{}; meshes and export follow",
+                interaction + 1,
+                parts.len(),
+                hand_out_to_articulation_s.map_or(String::new(), |s| format!(", {s:.1} s after hand-out"))
+            );
+        }
     };
     match run_session(opened, reference, &args.out, &cfg, &control, &on_event)? {
         SessionOutcome::Finished { parts, report } => {
@@ -120,9 +129,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     interaction.frames.after
                 );
                 super::train_dynamic::print_joints(parts, interaction.stage_two.gt_report.as_ref());
+                let after = |s: Option<f64>| s.map_or("(no hand-out)".into(), |s| format!("{s:.1} s"));
                 println!(
-                    "  the twin {} after hand-out, in {}",
-                    interaction.hand_out_to_twin_s.map_or("(no hand-out)".into(), |s| format!("{s:.1} s")),
+                    "  the articulation {} and the twin {} after hand-out, in {}",
+                    after(interaction.hand_out_to_articulation_s),
+                    after(interaction.hand_out_to_twin_s),
                     args.out.join(&interaction.dir).join("dynamic/twin").display()
                 );
             }

@@ -8,7 +8,9 @@ use aim::eval::ArticulationReport;
 use aim::mesh::tsdf::TsdfConfig;
 use aim::motion::JointKind;
 use aim::train::config::StageConfig;
-use aim::train::dynamic_run::{run_dynamic, DynamicMetrics, DynamicOutcome, RunControl, StageTwoInput};
+use aim::train::dynamic_run::{
+    run_dynamic, DynamicMetrics, DynamicOutcome, RunControl, StageTwoInput, StageTwoProgress,
+};
 use aim::train::dynamic_stage::{DynamicConfig, PartEstimate};
 
 #[derive(clap::Args)]
@@ -49,8 +51,12 @@ pub fn train_with_progress(
 ) -> anyhow::Result<Option<(Vec<PartEstimate>, Box<DynamicMetrics>)>> {
     let bar = super::progress::Progress::new("stage II", cfg.iterations);
     let input = StageTwoInput::load(dataset, &cfg)?;
-    let outcome = run_dynamic(input, static_ply, out, cfg, &TsdfConfig::default(), control, |s| {
-        bar.update(s.iteration, || format!("psnr {:.2} static {} moving {}", s.psnr, s.static_count, s.moving_count));
+    let outcome = run_dynamic(input, static_ply, out, cfg, &TsdfConfig::default(), control, |p| {
+        if let StageTwoProgress::Step(s) = p {
+            bar.update(s.iteration, || {
+                format!("psnr {:.2} static {} moving {}", s.psnr, s.static_count, s.moving_count)
+            });
+        }
     })?;
     bar.finish();
     match outcome {

@@ -28,7 +28,9 @@ use serde::Serialize;
 use crate::error::{write_atomic, Error, Result};
 use crate::mesh::tsdf::TsdfConfig;
 use crate::train::config::StaticConfig;
-use crate::train::dynamic_run::{run_dynamic, DynamicMetrics, DynamicOutcome, RunControl, StageTwoInput};
+use crate::train::dynamic_run::{
+    run_dynamic, DynamicMetrics, DynamicOutcome, RunControl, StageTwoInput, StageTwoProgress,
+};
 use crate::train::dynamic_stage::{DynamicConfig, DynamicStep, PartEstimate, StageTwoMethod};
 use crate::train::static_stage::{run_static, RunOutcome, RunSetup, StaticMetrics, StepReport};
 use crate::train::views::TrainView;
@@ -207,7 +209,24 @@ fn set_backdrops(views: &mut [TrainView], room: &crate::splat::GaussianSet) {
     }
 }
 
+/// A live session's stage I runs this fraction of its schedule
+/// ([`SessionConfig::go_live`]).
+pub const LIVE_STAGE_ONE_FRACTION: f64 = 0.8;
+
 impl SessionConfig {
+    /// A live capture (`aim run --live`): frames are handed over at their
+    /// recorded rate, the oldest buffered frame is dropped when training falls
+    /// behind, and stage I runs [`LIVE_STAGE_ONE_FRACTION`] of its schedule. Its
+    /// remainder is what delays the articulation most after the hand-out; on
+    /// the six single-joint synthetic recordings 80 % of the cpu preset gave
+    /// the same joints, 0.01-2 dB less stage I PSNR and 13 s less of stage I
+    /// (docs/session.md, "Live").
+    pub fn go_live(&mut self) {
+        self.ingest.policy = aim_capture::ingest::Policy::Live;
+        self.ingest.realtime = true;
+        self.stage_one = self.stage_one.compressed(LIVE_STAGE_ONE_FRACTION);
+    }
+
     /// The cpu presets of both stages with `seed`.
     pub fn cpu(seed: u64) -> Self {
         let mut stage_one = StaticConfig::cpu();
@@ -282,10 +301,25 @@ pub struct SessionControl<'a> {
 /// belong to the interaction whose stage started last.
 pub enum SessionEvent<'a> {
     Window(MotionEvent),
-    StageOneStarted { interaction: usize, object: usize, views: usize },
+    StageOneStarted {
+        interaction: usize,
+        object: usize,
+        views: usize,
+    },
     StageOne(&'a StepReport),
-    StageTwoStarted { interaction: usize, motion: usize, end: usize },
+    StageTwoStarted {
+        interaction: usize,
+        motion: usize,
+        end: usize,
+    },
     StageTwo(&'a DynamicStep),
+    /// An interaction's parts and joints are known (its meshes and export follow),
+    /// `hand_out_to_articulation_s` after its hand-out arrived.
+    Articulated {
+        interaction: usize,
+        parts: &'a [PartEstimate],
+        hand_out_to_articulation_s: Option<f64>,
+    },
 }
 
 /// Frames per phase as the router kept them.
@@ -324,8 +358,11 @@ pub struct InteractionReport {
     pub frames: PhaseCounts,
     pub stage_one: StaticMetrics,
     pub stage_two: DynamicMetrics,
-    /// From the moment its hand-out event arrived to its twin written: how far
-    /// the reconstruction lags behind the capture (`aim run --live`).
+    /// From the moment its hand-out event arrived to its parts and joints known:
+    /// how far the articulation lags behind the capture (`aim run --live`).
+    pub hand_out_to_articulation_s: Option<f64>,
+    /// From the same moment to its twin written (the meshes and the export after
+    /// the articulation).
     pub hand_out_to_twin_s: Option<f64>,
 }
 
@@ -794,6 +831,7 @@ impl<'a> InteractionWorker<'a> {
             start_state = object_ply;
         }
         let run_control = RunControl { resume: false, interrupt: control.interrupt, viz: control.viz };
+        let mut hand_out_to_articulation_s = None;
         let outcome = run_dynamic(
             input,
             &start_state,
@@ -801,7 +839,13 @@ impl<'a> InteractionWorker<'a> {
             cfg.stage_two.clone(),
             &cfg.mesh,
             &run_control,
-            |s| on_event(SessionEvent::StageTwo(s)),
+            |p| match p {
+                StageTwoProgress::Step(s) => on_event(SessionEvent::StageTwo(s)),
+                StageTwoProgress::Articulated(parts) => {
+                    hand_out_to_articulation_s = hand_out_at.map(|t| t.elapsed().as_secs_f64());
+                    on_event(SessionEvent::Articulated { interaction, parts, hand_out_to_articulation_s });
+                }
+            },
         )?;
         let DynamicOutcome::Finished { parts, metrics } = outcome else { return Ok(None) };
         let report = InteractionReport {
@@ -811,6 +855,7 @@ impl<'a> InteractionWorker<'a> {
             frames: counts,
             stage_one: *stage_one,
             stage_two: *metrics,
+            hand_out_to_articulation_s,
             hand_out_to_twin_s: hand_out_at.map(|t| t.elapsed().as_secs_f64()),
         };
         Ok(Some((parts, report)))

@@ -172,6 +172,21 @@ impl StaticConfig {
         }
     }
 
+    /// This schedule ending at `fraction` of its iterations: the densification
+    /// window and the opacity resets end and recur proportionally sooner (the
+    /// learning rates already decay over `iterations`); the warm-up before the
+    /// first densification and the densification and SH intervals are rates and
+    /// stay.
+    pub fn compressed(&self, fraction: f64) -> Self {
+        let scale = |n: u32| ((f64::from(n) * fraction).round() as u32).max(1);
+        let mut c = self.clone();
+        c.iterations = scale(self.iterations);
+        c.density.until_iter = scale(self.density.until_iter);
+        c.density.opacity_reset_interval =
+            if self.density.opacity_reset_interval == 0 { 0 } else { scale(self.density.opacity_reset_interval) };
+        c
+    }
+
     /// Practical on two CPU cores (see docs/training.md for the measurements behind it).
     pub fn cpu() -> Self {
         let mut c = Self::paper();
@@ -365,6 +380,20 @@ mod tests {
         assert!(e.contains("lr.scale"), "{e}");
         let e = StaticConfig::from_toml("sh_degree = 4\n", Path::new("cfg.toml")).unwrap_err().to_string();
         assert!(e.contains("sh_degree"), "{e}");
+    }
+
+    #[test]
+    fn a_compressed_schedule_ends_its_windows_proportionally_sooner() {
+        let cpu = StaticConfig::cpu();
+        let live = cpu.compressed(0.8);
+        assert_eq!((live.iterations, live.density.until_iter, live.density.opacity_reset_interval), (2400, 1920, 1200));
+        // Rates stay, and so does everything else.
+        let rates = |c: &StaticConfig| (c.density.from_iter, c.density.interval, c.sh_increase_interval, c.lr.clone());
+        assert_eq!(rates(&live), rates(&cpu));
+        assert!(live.validate().is_ok());
+        let mut never_reset = cpu.clone();
+        never_reset.density.opacity_reset_interval = 0;
+        assert_eq!(never_reset.compressed(0.5).density.opacity_reset_interval, 0, "no reset stays no reset");
     }
 
     #[test]

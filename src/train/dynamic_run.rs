@@ -28,6 +28,15 @@ use crate::splat::GaussianSet;
 use crate::viz::Viz;
 use aim_capture::Phase;
 
+/// What a stage II run reports as it goes.
+pub enum StageTwoProgress<'a> {
+    /// A training step (dual field) or a tracked segment (node tracking).
+    Step(&'a DynamicStep),
+    /// The parts and their joints are known; the meshes, the twin's export and
+    /// the held-out metrics follow. A live session shows the articulation here.
+    Articulated(&'a [PartEstimate]),
+}
+
 /// Where a stage II run continues from and when it stops early.
 pub struct RunControl<'a> {
     /// Continue from OUT/checkpoint.bin when it exists.
@@ -159,7 +168,7 @@ pub fn run_dynamic(
     cfg: DynamicConfig,
     mesh: &TsdfConfig,
     control: &RunControl,
-    progress: impl FnMut(&DynamicStep),
+    progress: impl FnMut(StageTwoProgress<'_>),
 ) -> Result<DynamicOutcome> {
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let StageTwoInput { source, motion, test, scan, end, ground_truth } = input;
@@ -188,7 +197,7 @@ fn run_dual_field(
     end: Vec<TrainView>,
     cfg: DynamicConfig,
     control: &RunControl,
-    mut progress: impl FnMut(&DynamicStep),
+    mut progress: impl FnMut(StageTwoProgress<'_>),
 ) -> Result<DynamicOutcome> {
     let out = run.out;
     let views = StageTwoViews::new(motion, start, end)?;
@@ -230,16 +239,17 @@ fn run_dual_field(
                 "SDMD handed motionless groups to the static set"
             );
         }
-        progress(&s);
+        progress(StageTwoProgress::Step(&s));
     }
     save_checkpoint(&checkpoint, &trainer, elapsed(&started))?;
+    let (parts, _) = trainer.analyse();
+    articulated(control.viz, &parts, &mut progress);
     let motion_test_psnr = (!run.test.is_empty()).then(|| trainer.evaluate(run.test));
     crate::splat::ply::write_ply(&out.join("moving.ply"), &trainer.moving.gaussians)?;
     crate::splat::ply::write_ply(&out.join("static_pruned.ply"), &trainer.static_set.gaussians)?;
     let net = postcard::to_stdvec(&trainer.net)
         .map_err(|e| Error::Other(format!("encoding the deformation network: {e}")))?;
     write_atomic(&out.join("deform.bin"), &net)?;
-    let (parts, _) = trainer.analyse();
     // The twin: the pruned static set as the base, each part's moving Gaussians at t = 0.
     let start_pose = trainer.moving_at(0.0);
     let part_sets: Vec<_> = parts
@@ -270,7 +280,7 @@ fn run_node_track(
     mut end_views: Vec<TrainView>,
     cfg: DynamicConfig,
     control: &RunControl,
-    mut progress: impl FnMut(&DynamicStep),
+    mut progress: impl FnMut(StageTwoProgress<'_>),
 ) -> Result<DynamicOutcome> {
     let out = run.out;
     if frames.is_empty() {
@@ -327,7 +337,7 @@ fn run_node_track(
             save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
             log_tracked(control.viz, &tracker, &frames);
         }
-        progress(&step);
+        progress(StageTwoProgress::Step(&step));
     }
     save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
     // The end state seen from around the object (the frames after the hand lets
@@ -353,6 +363,8 @@ fn run_node_track(
     if tracker.clean_parts(&frames, &end_views) > 0 {
         tracker.refit_end_poses(&end_views);
     }
+    let (parts, labels) = tracker.analyse();
+    articulated(control.viz, &parts, &mut progress);
     let motion_test_psnr = (!run.test.is_empty()).then(|| tracker.evaluate(run.test));
     let (tracking_error, tracking_error_at_discovery) = match run.ground_truth {
         Some(gt) => {
@@ -361,7 +373,6 @@ fn run_node_track(
         }
         None => (None, None),
     };
-    let (parts, labels) = tracker.analyse();
     let with_label = |l: usize| tracker.gaussians.subset(&labels.iter().map(|&x| x == l).collect::<Vec<_>>());
     let base = with_label(0);
     let part_sets: Vec<_> = (1..=parts.len()).map(with_label).collect();
@@ -390,6 +401,14 @@ fn run_node_track(
         tracking_error_at_discovery,
     };
     finish(run, control.viz, &base, parts, &part_sets, summary)
+}
+
+/// The articulation is known: its joints to the log (as arrows, before the
+/// meshes and the export take their time) and to `progress`.
+fn articulated(viz: &Viz, parts: &[PartEstimate], progress: &mut impl FnMut(StageTwoProgress<'_>)) {
+    let joints: Vec<_> = parts.iter().map(|p| p.joint).collect();
+    viz.joints("stage3/joints", &joints);
+    progress(StageTwoProgress::Articulated(parts));
 }
 
 /// The tracked nodes' distance from their true positions (the ground truth of
