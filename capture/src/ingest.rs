@@ -20,7 +20,7 @@ use serde::Serialize;
 use crate::detect::MotionEvent;
 use crate::error::Error;
 use crate::frame::Frame;
-use crate::pipeline::{PhaseTagger, Processor, Skip};
+use crate::pipeline::{PhaseTagger, Processed, Processor, Skip};
 use crate::source::FrameSource;
 
 /// Buffer policy.
@@ -78,6 +78,7 @@ struct Counters {
     dropped: AtomicU64,
     corrupt: AtomicU64,
     unposed: AtomicU64,
+    out_of_order: AtomicU64,
 }
 
 /// A snapshot of the counters.
@@ -93,6 +94,50 @@ pub struct IngestStats {
     pub corrupt: u64,
     /// Frames skipped because no pose was available at their time.
     pub unposed: u64,
+    /// Frames skipped because their time was not after the frame before them
+    /// (the recording's clock jumped back: [`ClockOrder`]).
+    pub out_of_order: u64,
+}
+
+/// A recording's frames must come in time order: where the clock jumps back (files
+/// joined out of order, a device clock reset), the frames up to the time already
+/// reached are skipped and counted, with a warning naming the frame where it
+/// happened. Kept, they would fall into a phase whose time has passed and give the
+/// motion frames out of order. Frames whose phase the source gives (datasets, whose
+/// nominal clock restarts per phase) are not checked.
+#[derive(Default)]
+struct ClockOrder {
+    last_ns: Option<i64>,
+    /// Skipping since a jump back (so that a jump is reported once).
+    skipping: bool,
+}
+
+impl ClockOrder {
+    fn accepts(&mut self, p: &Processed, source: &str) -> bool {
+        if p.given_phase.is_some() {
+            return true;
+        }
+        match self.last_ns {
+            Some(last) if p.timestamp_ns <= last => {
+                if !self.skipping {
+                    tracing::warn!(
+                        "{source}: the clock jumps back at frame {} ({:.3} s after {:.3} s); skipping frames until it passes {:.3} s",
+                        p.frame.index,
+                        p.timestamp_ns as f64 * 1e-9,
+                        last as f64 * 1e-9,
+                        last as f64 * 1e-9
+                    );
+                }
+                self.skipping = true;
+                false
+            }
+            _ => {
+                self.last_ns = Some(p.timestamp_ns);
+                self.skipping = false;
+                true
+            }
+        }
+    }
 }
 
 struct QueueState {
@@ -218,6 +263,8 @@ impl Ingest {
                 q.push(m, policy, &c)
             };
             let mut consecutive_errors = 0usize;
+            let mut clock = ClockOrder::default();
+            let source_name = source.describe();
             'outer: loop {
                 if st.load(Ordering::Relaxed) {
                     break;
@@ -255,6 +302,9 @@ impl Ingest {
                 let processed: Vec<_> = pool.install(|| batch.into_par_iter().map(|r| processor.process(r)).collect());
                 for p in processed {
                     match p {
+                        Ok(p) if !clock.accepts(&p, &source_name) => {
+                            c.out_of_order.fetch_add(1, Ordering::Relaxed);
+                        }
                         Ok(p) => {
                             consecutive_errors = 0;
                             let (frames, ev) = tagger.push(p);
@@ -312,6 +362,7 @@ impl Ingest {
             dropped: c.dropped.load(Ordering::Relaxed),
             corrupt: c.corrupt.load(Ordering::Relaxed),
             unposed: c.unposed.load(Ordering::Relaxed),
+            out_of_order: c.out_of_order.load(Ordering::Relaxed),
         }
     }
 
@@ -368,8 +419,10 @@ pub fn collect_all(
         }
     }
     let processed: Vec<_> = raws.into_par_iter().map(|r| processor.process(r)).collect();
+    let (mut clock, source_name) = (ClockOrder::default(), source.describe());
     for p in processed {
         match p {
+            Ok(p) if !clock.accepts(&p, &source_name) => stats.out_of_order += 1,
             Ok(p) => frames.extend(tagger.push(p).0),
             Err(Skip::Corrupt(m)) => {
                 stats.corrupt += 1;

@@ -140,7 +140,9 @@ impl Trajectory {
 
     /// T_world_device at `t_ns` (device clock), linear in translation and slerp in
     /// rotation between the two bracketing samples. None outside the trajectory's span
-    /// (plus `tolerance_ns` of clamping at either end).
+    /// (plus `tolerance_ns` of clamping at either end), and inside a hole in it (the
+    /// nearer bracketing sample more than `tolerance_ns` away: tracking was lost
+    /// there, and the head may have gone anywhere between the two).
     pub fn interpolate(&self, t_ns: i64, tolerance_ns: i64) -> Option<Se3> {
         let s = &self.samples;
         let first = s.first()?;
@@ -154,6 +156,10 @@ impl Trajectory {
         }
         let j = s.partition_point(|p| (p.t_us as f64) <= t_us);
         let (a, b) = (&s[j - 1], &s[j]);
+        let nearer_us = (t_us - a.t_us as f64).min(b.t_us as f64 - t_us);
+        if nearer_us * 1000.0 > tolerance_ns as f64 {
+            return None;
+        }
         let span = b.t_us as f64 - a.t_us as f64;
         let u = if span > 0.0 { (t_us - a.t_us as f64) / span } else { 0.0 };
         Some(a.t_world_device.interpolate(&b.t_world_device, u))
@@ -325,12 +331,16 @@ mod tests {
         let text =
             format!("{TRAJECTORY_HEADER}1000,0,0,0,0,0,0,1\n2000,2,0,0,0,0,0.7071067811865476,0.7071067811865476\n");
         let t = Trajectory::parse(Path::new("t.csv"), &text).unwrap();
-        let p = t.interpolate(1_500_000, 0).unwrap();
+        let p = t.interpolate(1_500_000, 500_000).unwrap();
         assert!((p.translation - DVec3::new(1.0, 0.0, 0.0)).length() < 1e-12);
         let angle = p.rotation.angle_between(DQuat::IDENTITY);
         assert!((angle - std::f64::consts::FRAC_PI_4).abs() < 1e-9, "{angle}");
         assert!(t.interpolate(3_000_000, 0).is_none());
         assert!(t.interpolate(2_000_500, 1000).is_some());
+        // A hole: 1 ms between the samples is tracking lost for a 0.4 ms tolerance,
+        // except within the tolerance of either sample.
+        assert!(t.interpolate(1_500_000, 400_000).is_none(), "the middle of a hole");
+        assert!(t.interpolate(1_300_000, 400_000).is_some(), "near a sample");
     }
 
     #[test]

@@ -366,7 +366,7 @@ pub fn inspect(path: &Path, opts: &RecordingOptions) -> Result<InspectReport> {
         recording: path.display().to_string(),
         source: describe,
         streams,
-        frame_count: frames.len() + (stats.corrupt + stats.unposed) as usize,
+        frame_count: frames.len() + (stats.corrupt + stats.unposed + stats.out_of_order) as usize,
         width,
         height,
         calibration,

@@ -126,3 +126,52 @@ fn realtime_replay_paces_frames_at_the_recorded_rate() {
     }
     assert!(arrivals[7].0 - a0 >= 0.33);
 }
+
+/// `inner`'s frames with the clock set back by `back_ns` from frame `from` on.
+struct ClockJumpsBack {
+    inner: Box<dyn FrameSource>,
+    from: usize,
+    back_ns: i64,
+}
+
+impl FrameSource for ClockJumpsBack {
+    fn describe(&self) -> String {
+        format!("{} (clock set back)", self.inner.describe())
+    }
+    fn len_hint(&self) -> Option<usize> {
+        self.inner.len_hint()
+    }
+    fn camera(&self) -> Option<aim_capture::calib::CameraCalibration> {
+        self.inner.camera()
+    }
+    fn next_frame(&mut self) -> Option<aim_capture::Result<aim_capture::source::RawFrame>> {
+        self.inner.next_frame().map(|r| {
+            r.map(|mut f| {
+                if f.index >= self.from {
+                    f.timestamp_ns -= self.back_ns;
+                }
+                f
+            })
+        })
+    }
+}
+
+#[test]
+fn frames_where_the_clock_jumps_back_are_skipped_and_counted() {
+    let (src, p) = setup(3); // 24 frames, 50 ms apart
+                             // From frame 12 on the clock reads 200 ms early: frames 12-15 repeat the times
+                             // of frames 8-11 and are skipped; frame 16 (frame 12's time) goes on.
+    let src = Box::new(ClockJumpsBack { inner: src, from: 12, back_ns: 200_000_000 });
+    let ingest = Ingest::spawn(src, p, PhaseTagger::none(), IngestConfig::default()).unwrap();
+    let frames: Vec<_> = (&ingest)
+        .filter_map(|m| match m {
+            Message::Frame(f) => Some(f),
+            _ => None,
+        })
+        .collect();
+    let (stats, _) = ingest.stop();
+    assert_eq!((stats.read, stats.delivered, stats.out_of_order), (24, 20, 4), "{stats:?}");
+    let indices: Vec<usize> = frames.iter().map(|f| f.index).collect();
+    assert!(!indices.iter().any(|i| (12..16).contains(i)), "{indices:?}");
+    assert!(frames.windows(2).all(|w| w[1].timestamp_s > w[0].timestamp_s), "the frames go on in time order");
+}

@@ -137,10 +137,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     args.out.join(&interaction.dir).join("dynamic/twin").display()
                 );
             }
+            let i = &report.ingest;
+            let skipped =
+                [(i.corrupt, "unreadable"), (i.unposed, "without a pose"), (i.out_of_order, "out of time order")]
+                    .iter()
+                    .filter(|(n, _)| *n > 0)
+                    .map(|(n, why)| format!("; {n} skipped {why}"))
+                    .collect::<String>();
             println!(
-                "{:.1} s in all; {} frame(s) dropped; wrote {}",
+                "{:.1} s in all; {} frame(s) dropped{skipped}; wrote {}",
                 report.wall_s,
-                report.ingest.dropped,
+                i.dropped,
                 args.out.join("session.json").display()
             );
         }
