@@ -356,3 +356,39 @@ fn aim_run_live_paces_the_recording_and_reports_how_far_the_twin_lags() {
     let reached = used + count(&report["frames_without_object"]);
     assert_eq!(reached, count(&ingest["delivered"]) - count(&ingest["dropped"]), "{ingest} {frames}");
 }
+
+/// A recording that ends while the hand still holds the part (a capture cut
+/// short): `aim run` says so and exits non-zero, and keeps what it made: stage I
+/// of the interaction, and session.json naming the interaction that failed.
+#[test]
+fn a_recording_cut_before_the_hand_lets_go_keeps_what_was_made() {
+    let root = tmp("cut-recording");
+    let rec = root.join("recording");
+    let small =
+        RecordingConfig { resolution: 128, fps: 6.0, scan_s: 1.5, motion_s: 1.0, after_s: 1.0, ..Default::default() };
+    let summary = write_recording(&[aim::synth::object("fridge").expect("object")], &small, &rec).expect("written");
+    // Cut half-way through the motion: the frames after it are gone from the folder.
+    let cut = (summary.interactions[0].hand_in_frame + summary.interactions[0].hand_out_frame) / 2;
+    let list = rec.join("frames").join("timestamps.csv");
+    let text = String::from_utf8(read(&list)).expect("utf-8");
+    let mut kept = Vec::new();
+    for (k, line) in text.lines().enumerate() {
+        let frame = line.split(',').next().expect("a file name");
+        if k == 0 || k <= cut + 1 {
+            kept.push(line);
+        } else {
+            std::fs::remove_file(rec.join("frames").join(frame)).expect("a frame file");
+        }
+    }
+    std::fs::write(&list, kept.join("\n") + "\n").expect("written");
+    let run = root.join("run");
+    let out =
+        aim().arg("run").arg(&rec).arg("--out").arg(&run).args(["--static-iterations", "40"]).output().expect("runs");
+    assert!(!out.status.success(), "a motion without an end is not a twin");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("never left") && stderr.contains("interaction_1"), "{stderr}");
+    assert!(run.join("interaction_1/static/static.ply").is_file(), "stage I's result is kept");
+    let report: serde_json::Value = serde_json::from_slice(&read(&run.join("session.json"))).expect("json");
+    assert_eq!(report["failed"][0]["dir"], "interaction_1", "{report}");
+    assert_eq!(report["interactions"].as_array().map(Vec::len), Some(0), "{report}");
+}

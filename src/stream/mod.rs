@@ -340,8 +340,10 @@ pub struct SessionReport {
     /// and seconds on the source's clock; a dataset's clock is nominal, per phase).
     pub events: Vec<MotionEvent>,
     pub ingest: IngestStats,
-    /// One per hand-in, in time order.
+    /// One per hand-in that gave a twin, in time order.
     pub interactions: Vec<InteractionReport>,
+    /// The interactions that failed (their error; the session then exits with it).
+    pub failed: Vec<InteractionFailure>,
     /// From the start of the session to the last twin written (wall clock).
     pub wall_s: f64,
 }
@@ -364,6 +366,14 @@ pub struct InteractionReport {
     /// From the same moment to its twin written (the meshes and the export after
     /// the articulation).
     pub hand_out_to_twin_s: Option<f64>,
+}
+
+/// An interaction that gave no twin, and why.
+#[derive(Clone, Debug, Serialize)]
+pub struct InteractionFailure {
+    /// Its folder under the session's (interaction_K).
+    pub dir: String,
+    pub error: String,
 }
 
 /// How a session ended.
@@ -645,13 +655,19 @@ pub fn run_session(
         }
         let mut parts = Vec::new();
         let mut interactions = Vec::new();
-        for handle in closed {
-            match handle.join().map_err(|_| Error::Other("an interaction's worker panicked".into()))?? {
-                Some((p, report)) => {
+        let mut failed = Vec::new();
+        // Closed in hand-in order: handle k is interaction_{k + 1}.
+        for (k, handle) in closed.into_iter().enumerate() {
+            match handle.join().map_err(|_| Error::Other("an interaction's worker panicked".into()))? {
+                Ok(Some((p, report))) => {
                     parts.push(p);
                     interactions.push(report);
                 }
-                None => return Ok(SessionOutcome::Interrupted),
+                Ok(None) => return Ok(SessionOutcome::Interrupted),
+                // One interaction's failure leaves the others' twins standing.
+                Err(e) => {
+                    failed.push(InteractionFailure { dir: format!("interaction_{}", k + 1), error: e.to_string() })
+                }
             }
         }
         let report = SessionReport {
@@ -660,10 +676,20 @@ pub fn run_session(
             events,
             ingest: stats,
             interactions,
+            failed,
             wall_s: started.elapsed().as_secs_f64(),
         };
         let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Other(e.to_string()))?;
         write_atomic(&out.join("session.json"), &json)?;
+        if !report.failed.is_empty() {
+            let errors: Vec<String> = report.failed.iter().map(|f| format!("{}: {}", f.dir, f.error)).collect();
+            return Err(Error::Other(format!(
+                "{}; {} other interaction(s) gave their twin (listed in {})",
+                errors.join("; "),
+                report.interactions.len(),
+                out.join("session.json").display()
+            )));
+        }
         Ok(SessionOutcome::Finished { parts, report: Box::new(report) })
     })
 }
