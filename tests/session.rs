@@ -173,6 +173,18 @@ fn input_without_an_interaction_is_refused_by_name() {
         std::fs::remove_file(rec.join(file)).expect("removed");
         let e = stderr(&rec);
         assert!(e.contains(&rec.display().to_string()) && e.contains(needed), "{file}: {e}");
+        if needed == "semidense" {
+            // A region on the command line, negative corners included, is read as
+            // given (the points are still what is missing); a malformed one is named.
+            let with_region = |r: &str| {
+                let out = aim().arg("run").arg(&rec).arg("--out").arg(root.join("run")).args(["--region", r]).output();
+                String::from_utf8_lossy(&out.expect("runs").stderr).into_owned()
+            };
+            let e = with_region("-2,-2,-1,2,2,3");
+            assert!(e.contains("semidense"), "{e}");
+            let e = with_region("1,2");
+            assert!(e.contains("--region") && e.contains("x0,y0,z0,x1,y1,z1"), "{e}");
+        }
     }
     let missing = aim().arg("run").arg(root.join("nothing")).arg("--out").arg(root.join("run")).output().expect("runs");
     assert!(!missing.status.success());

@@ -79,7 +79,7 @@ pub struct Common {
     #[arg(long)]
     points: Option<PathBuf>,
     /// Object region in world coordinates: x0,y0,z0,x1,y1,z1 (default: object_region.json beside the recording).
-    #[arg(long, value_delimiter = ',', num_args = 6)]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     region: Option<Vec<f64>>,
     /// MPS online_calibration.jsonl to use instead of the recording's factory calibration.
     #[arg(long)]
@@ -109,7 +109,15 @@ impl Common {
     /// The recording's options, undistorting to `default` where no size or focal is given.
     pub fn options(&self, default: UndistortConfig) -> anyhow::Result<RecordingOptions> {
         let detector: DetectorKind = self.detector.parse().map_err(anyhow::Error::msg)?;
-        let region = self.region.as_ref().map(|r| ObjectRegion { min: [r[0], r[1], r[2]], max: [r[3], r[4], r[5]] });
+        let region = match self.region.as_deref() {
+            None => None,
+            Some(&[x0, y0, z0, x1, y1, z1]) if x0 < x1 && y0 < y1 && z0 < z1 => {
+                Some(ObjectRegion { min: [x0, y0, z0], max: [x1, y1, z1] })
+            }
+            Some(r) => anyhow::bail!(
+                "--region takes x0,y0,z0,x1,y1,z1 with each min below its max (a box in world coordinates), got {r:?}"
+            ),
+        };
         let size = self.size.unwrap_or(default.width);
         let focal = self.focal.unwrap_or(default.focal);
         Ok(RecordingOptions {
