@@ -59,7 +59,11 @@ pub fn run(
                 if let Some(gt) = &interaction.stage_two.gt_report {
                     println!("  against the ground truth: {}", serde_json::to_string(gt)?);
                 }
-                println!("  its twin {:?} s after its hand-out", interaction.hand_out_to_twin_s);
+                if let (Some(joints), Some(twin)) =
+                    (interaction.hand_out_to_articulation_s, interaction.hand_out_to_twin_s)
+                {
+                    println!("  its joints {joints:.1} s and its twin {twin:.1} s after its hand-out");
+                }
             }
             println!("{:.1} s in all; the twins in {}", report.wall_s, out.display());
         }
