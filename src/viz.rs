@@ -141,7 +141,7 @@ impl Viz {
                 .enumerate()
                 .map(|(k, j)| match j.kind {
                     JointKind::Revolute => format!("part {}: revolute {:.1} deg", k + 1, j.amount.to_degrees()),
-                    JointKind::Prismatic => format!("part {}: prismatic {:.3}", k + 1, j.amount),
+                    JointKind::Prismatic => format!("part {}: prismatic {:.3} m", k + 1, j.amount),
                 })
                 .collect();
             log_or_warn(

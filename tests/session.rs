@@ -39,18 +39,25 @@ fn tiny_fridge(data: &Path) {
     write_dataset(&aim::synth::object("fridge").expect("object"), data, &cfg, &|_, _| {}).expect("written");
 }
 
+/// A scratch folder `name` with the tiny fridge dataset in it (root, dataset), and
+/// the cpu presets with `seed` and the stages' iterations.
+fn tiny_fridge_session(name: &str, seed: u64, stage_one: u32, stage_two: u32) -> (PathBuf, PathBuf, SessionConfig) {
+    let root = tmp(name);
+    let data = root.join("data");
+    tiny_fridge(&data);
+    let mut cfg = SessionConfig::cpu(seed);
+    cfg.stage_one.iterations = stage_one;
+    cfg.stage_two.iterations = stage_two;
+    (root, data, cfg)
+}
+
 fn read(path: &Path) -> Vec<u8> {
     std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
 #[test]
 fn a_session_on_a_dataset_gives_the_stage_commands_result() {
-    let root = tmp("parity");
-    let data = root.join("data");
-    tiny_fridge(&data);
-    let mut cfg = SessionConfig::cpu(3);
-    cfg.stage_one.iterations = 40;
-    cfg.stage_two.iterations = 60;
+    let (root, data, cfg) = tiny_fridge_session("parity", 3, 40, 60);
     let never = AtomicBool::new(false);
     let viz = Viz::disabled();
 
@@ -403,4 +410,51 @@ fn a_recording_cut_before_the_hand_lets_go_keeps_what_was_made() {
     let report: serde_json::Value = serde_json::from_slice(&read(&run.join("session.json"))).expect("json");
     assert_eq!(report["failed"][0]["dir"], "interaction_1", "{report}");
     assert_eq!(report["interactions"].as_array().map(Vec::len), Some(0), "{report}");
+}
+
+/// `inner`'s frames, then records that will not read (a recording damaged from
+/// some point on).
+struct UnreadableTail {
+    inner: Box<dyn aim_capture::source::FrameSource>,
+    bad: usize,
+}
+
+impl aim_capture::source::FrameSource for UnreadableTail {
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+    fn len_hint(&self) -> Option<usize> {
+        None
+    }
+    fn camera(&self) -> Option<aim_capture::calib::CameraCalibration> {
+        self.inner.camera()
+    }
+    fn next_frame(&mut self) -> Option<aim_capture::Result<aim_capture::source::RawFrame>> {
+        self.inner.next_frame().or_else(|| {
+            self.bad = self.bad.checked_sub(1)?;
+            Some(Err(aim_capture::Error::Other("damaged record".into())))
+        })
+    }
+}
+
+/// A stream that fails after an interaction is whole ends there: that
+/// interaction's twin is made, session.json records the error, and the session
+/// returns it.
+#[test]
+fn a_stream_failing_after_an_interaction_keeps_its_twin() {
+    let (root, data, cfg) = tiny_fridge_session("stream-error", 0, 30, 30);
+    let mut opened = open_recording(&data, &RecordingOptions::default()).expect("opens");
+    let tolerated = cfg.ingest.max_consecutive_errors;
+    opened.source = Box::new(UnreadableTail { inner: opened.source, bad: tolerated + 4 });
+    let (never, viz) = (AtomicBool::new(false), Viz::disabled());
+    let control = SessionControl { interrupt: &never, viz: &viz };
+    let out = root.join("session");
+    let reference = Reference { ground_truth: vec![data.clone()], ..Reference::default() };
+    let err = run_session(opened, reference, &out, &cfg, &control, &|_| {}).err().expect("the stream's error");
+    let msg = err.to_string();
+    assert!(msg.contains("damaged record") && msg.contains("1 interaction(s) gave their twin"), "{msg}");
+    assert!(out.join("interaction_1/dynamic/twin/articulation.json").is_file());
+    let written: serde_json::Value = serde_json::from_slice(&read(&out.join("session.json"))).expect("json");
+    assert!(written["stream_error"].as_str().is_some_and(|e| e.contains("damaged record")), "{written}");
+    assert_eq!(written["interactions"].as_array().map(Vec::len), Some(1), "{written}");
 }

@@ -22,7 +22,9 @@ pub struct Processor {
     /// T_device_camera of the output camera (upright applied).
     pub t_device_camera: Se3,
     pub trajectory: Option<Trajectory>,
-    /// Largest distance (ns) beyond the trajectory's ends that is still clamped.
+    /// Largest distance (ns) from the nearest trajectory sample at which a frame is
+    /// still posed: beyond the trajectory's ends (clamped), and inside it (a gap
+    /// between samples wider than twice this is a hole where tracking was lost).
     pub pose_tolerance_ns: i64,
     /// Skip frames that cannot be posed when a trajectory is given.
     pub require_pose: bool,

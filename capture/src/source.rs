@@ -130,7 +130,17 @@ impl FolderSource {
         let dir = dir.as_ref().to_path_buf();
         let rd = std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))?;
         let mut names: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| is_image(p)).collect();
-        names.sort();
+        // Capture order: by the number in the name where every name has one (img_2
+        // before img_10), else by name.
+        let number = |p: &Path| -> Option<u128> {
+            let s: String = p.file_stem()?.to_str()?.chars().filter(|c| c.is_ascii_digit()).collect();
+            s.parse().ok()
+        };
+        if names.iter().all(|p| number(p).is_some()) {
+            names.sort_by_key(|p| (number(p), p.clone()));
+        } else {
+            names.sort();
+        }
         if names.is_empty() {
             return Err(Error::bad_file(&dir, "no PNG or JPEG images in the folder"));
         }
@@ -150,11 +160,8 @@ impl FolderSource {
                 }
             }
         }
-        let digits = |p: &Path| -> Option<i64> {
-            let s: String = p.file_stem()?.to_str()?.chars().filter(|c| c.is_ascii_digit()).collect();
-            s.parse().ok()
-        };
-        let from_names: Option<Vec<i64>> = names.iter().map(|p| digits(p)).collect();
+        let from_names: Option<Vec<i64>> =
+            names.iter().map(|p| number(p).and_then(|n| i64::try_from(n).ok())).collect();
         let from_names = from_names.filter(|v| v.windows(2).all(|w| w[0] < w[1]) && v.iter().any(|&t| t > 1_000_000));
         let fps = if fps > 0.0 { fps } else { 30.0 };
         let mut files = Vec::with_capacity(names.len());
@@ -214,8 +221,10 @@ impl DatasetSource {
         DatasetSource { name: name.into(), frames: frames.into_iter(), len, phase_given: true }
     }
 
-    /// Posed frames without phases (nerfstudio, COLMAP): the detector decides them.
-    pub fn from_frames_undetected(name: impl Into<String>, frames: Vec<Frame>) -> Self {
+    /// Posed frames without phases (nerfstudio, COLMAP): the detector decides them,
+    /// in time order (a transforms.json need not list its frames in it).
+    pub fn from_frames_undetected(name: impl Into<String>, mut frames: Vec<Frame>) -> Self {
+        frames.sort_by(|a, b| a.timestamp_s.total_cmp(&b.timestamp_s));
         DatasetSource { phase_given: false, ..Self::from_frames(name, frames) }
     }
 

@@ -162,7 +162,7 @@ fn mps_csvs_never_panic() {
         .run(&mutations(), |m| {
             let t = String::from_utf8_lossy(&mutate(traj.as_bytes(), traj.len(), &m)).into_owned();
             if let Ok(t) = Trajectory::parse(Path::new("t.csv"), &t) {
-                let _ = t.interpolate(149_202_610_000 + 500_000, 0);
+                let _ = t.interpolate(149_202_610_000 + 500_000, 1_000_000);
             }
             let h = String::from_utf8_lossy(&mutate(hands.as_bytes(), hands.len(), &m)).into_owned();
             if let Ok(h) = HandTracking::parse(Path::new("h.csv"), &h) {

@@ -159,8 +159,8 @@ impl FrameSource for ClockJumpsBack {
 #[test]
 fn frames_where_the_clock_jumps_back_are_skipped_and_counted() {
     let (src, p) = setup(3); // 24 frames, 50 ms apart
-                             // From frame 12 on the clock reads 200 ms early: frames 12-15 repeat the times
-                             // of frames 8-11 and are skipped; frame 16 (frame 12's time) goes on.
+                             // From frame 12 on the clock reads 200 ms early (4 frames' worth): frames 12-15
+                             // fall at or before frame 11's time and are skipped; frame 16 is after it.
     let src = Box::new(ClockJumpsBack { inner: src, from: 12, back_ns: 200_000_000 });
     let ingest = Ingest::spawn(src, p, PhaseTagger::none(), IngestConfig::default()).unwrap();
     let frames: Vec<_> = (&ingest)
@@ -174,4 +174,9 @@ fn frames_where_the_clock_jumps_back_are_skipped_and_counted() {
     let indices: Vec<usize> = frames.iter().map(|f| f.index).collect();
     assert!(!indices.iter().any(|i| (12..16).contains(i)), "{indices:?}");
     assert!(frames.windows(2).all(|w| w[1].timestamp_s > w[0].timestamp_s), "the frames go on in time order");
+    // The batch path checks the same way.
+    let (src, p) = setup(3);
+    let mut src = ClockJumpsBack { inner: src, from: 12, back_ns: 200_000_000 };
+    let (batch, _, batch_stats) = aim_capture::ingest::collect_all(&mut src, &p, &mut PhaseTagger::none());
+    assert_eq!((batch.len(), batch_stats.out_of_order), (20, 4), "{batch_stats:?}");
 }

@@ -16,16 +16,23 @@ fn opts(detector: DetectorKind) -> RecordingOptions {
     RecordingOptions { detector, ..RecordingOptions::default() }
 }
 
-#[test]
-fn image_folder_with_timestamps_csv_and_explicit_window() {
-    let d = tmp("folder");
+/// A folder of `count` frames img_0.png, img_1.png, ... (names unpadded), 100 ms
+/// apart from 5 s on, listed in timestamps.csv.
+fn numbered_frames(name: &str, count: u32) -> PathBuf {
+    let d = tmp(name);
     let mut csv = String::from("file,timestamp_ns\n");
-    for k in 0..6u32 {
+    for k in 0..count {
         let name = format!("img_{k}.png");
         image::RgbImage::from_pixel(32, 24, image::Rgb([k as u8 * 10, 50, 90])).save(d.join(&name)).unwrap();
         csv.push_str(&format!("{name},{}\n", 5_000_000_000u64 + k as u64 * 100_000_000));
     }
     std::fs::write(d.join("timestamps.csv"), csv).unwrap();
+    d
+}
+
+#[test]
+fn image_folder_with_timestamps_csv_and_explicit_window() {
+    let d = numbered_frames("folder", 6);
     let (frames, events, stats) = open_recording(&d, &opts(DetectorKind::Explicit(5.15, 5.35))).unwrap().collect();
     assert_eq!(frames.len(), 6, "{stats:?}");
     assert!((frames[3].timestamp_s - 5.3).abs() < 1e-9);
@@ -64,4 +71,14 @@ fn nerfstudio_folder_frames_pass_through_posed() {
     let c2 = frames[2].world_to_camera.inverse().w_axis;
     assert!(((c2.x - c0.x) - 2.0).abs() < 1e-5, "{c0} {c2}");
     let _ = std::fs::remove_dir_all(&d);
+}
+
+/// Frame files numbered without padding (img_2 before img_10) come in the order of
+/// their numbers, which is their capture order: none is taken for a clock jumping back.
+#[test]
+fn image_folder_frames_come_in_the_order_of_their_numbers() {
+    let d = numbered_frames("unpadded", 12);
+    let (frames, _, stats) = open_recording(&d, &opts(DetectorKind::None)).unwrap().collect();
+    assert_eq!((frames.len(), stats.out_of_order), (12, 0), "{stats:?}");
+    assert!(frames.windows(2).all(|w| w[1].timestamp_s > w[0].timestamp_s));
 }

@@ -183,12 +183,13 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
                 println!("evidence    {}", ev.join(" "));
             }
             println!(
-                "phases      scan {}, motion {}, after {}; skipped: {} corrupt, {} without pose",
+                "phases      scan {}, motion {}, after {}; skipped: {} corrupt, {} without pose, {} out of time order",
                 report.phase_counts[0],
                 report.phase_counts[1],
                 report.phase_counts[2],
                 report.stats.corrupt,
-                report.stats.unposed
+                report.stats.unposed,
+                report.stats.out_of_order
             );
         }
         Capture::Crop { recording, frame, crop_size, object, common, out, camera_out } => {

@@ -44,9 +44,10 @@ pub struct Args {
     pub dynamic_iterations: Option<u32>,
     /// Emulate a live capture: frames are handed over at their recorded rate,
     /// the oldest buffered frame is dropped when training falls behind (counted
-    /// in session.json), stage I runs 80 % of its schedule (for a sooner
-    /// articulation), and the time from hand-out to the articulation and to
-    /// the twin is reported. Without it, a replay never drops a frame.
+    /// in session.json), stage I runs 80 % of the preset's schedule (for a
+    /// sooner articulation; --static-iterations or --static-config are kept as
+    /// given), and the time from hand-out to the articulation and to the twin is
+    /// reported. Without it, a replay never drops a frame.
     #[arg(long)]
     pub live: bool,
     #[command(flatten)]
@@ -66,7 +67,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     cfg.stage_two =
         DynamicConfig::resolve(args.dynamic_config.as_deref(), &args.preset, args.seed, args.dynamic_iterations)?;
     if args.live {
+        let asked = cfg.stage_one.clone();
         cfg.go_live();
+        // A schedule asked for on the command line is trained as asked.
+        if args.static_iterations.is_some() || args.static_config.is_some() {
+            cfg.stage_one = asked;
+        }
     }
     let (opened, reference) = match dataset_layout(&args.input) {
         Some(layout) => {

@@ -344,6 +344,9 @@ pub struct SessionReport {
     pub interactions: Vec<InteractionReport>,
     /// The interactions that failed (their error; the session then exits with it).
     pub failed: Vec<InteractionFailure>,
+    /// Why the stream ended early, if it did (a recording unreadable from some
+    /// frame on); the interactions before it are kept.
+    pub stream_error: Option<String>,
     /// From the start of the session to the last twin written (wall clock).
     pub wall_s: f64,
 }
@@ -518,6 +521,9 @@ pub fn run_session(
         // the first frame that shows it, on the scan as it arrives.
         let start_early = cfg.room.as_ref().is_some_and(|r| r.crops.len() == 1);
         let mut early: Option<OpenInteraction> = None;
+        // The stream failing (a recording unreadable from some point on) ends it:
+        // the interactions already whole still give their twins.
+        let mut stream_error = None;
         for message in &ingest {
             if control.interrupt.load(Ordering::SeqCst) {
                 break;
@@ -538,7 +544,10 @@ pub fn run_session(
                     events.push(e);
                     continue;
                 }
-                Message::Error(e) => return Err(Error::from(e)),
+                Message::Error(e) => {
+                    stream_error = Some(Error::from(e).to_string());
+                    break;
+                }
             };
             log_frame(control.viz, &frame);
             if let Some(e) = hand_in.take() {
@@ -648,6 +657,9 @@ pub fn run_session(
             if interrupted {
                 return Ok(SessionOutcome::Interrupted);
             }
+            if let Some(e) = stream_error {
+                return Err(Error::Other(e));
+            }
             let scanned: usize = scans.iter().map(|s| s.views.len()).sum();
             return Err(Error::Other(format!(
                 "{source}: no interaction found ({scanned} scan frame(s), no hand-in): nothing moved, so there is no articulation to learn"
@@ -677,14 +689,17 @@ pub fn run_session(
             ingest: stats,
             interactions,
             failed,
+            stream_error,
             wall_s: started.elapsed().as_secs_f64(),
         };
         let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Other(e.to_string()))?;
         write_atomic(&out.join("session.json"), &json)?;
-        if !report.failed.is_empty() {
-            let errors: Vec<String> = report.failed.iter().map(|f| format!("{}: {}", f.dir, f.error)).collect();
+        if !report.failed.is_empty() || report.stream_error.is_some() {
+            let errors: Vec<String> = (report.stream_error.iter().cloned())
+                .chain(report.failed.iter().map(|f| format!("{}: {}", f.dir, f.error)))
+                .collect();
             return Err(Error::Other(format!(
-                "{}; {} other interaction(s) gave their twin (listed in {})",
+                "{}; {} interaction(s) gave their twin (listed in {})",
                 errors.join("; "),
                 report.interactions.len(),
                 out.join("session.json").display()
