@@ -143,6 +143,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     args.out.join(&interaction.dir).join("dynamic/twin").display()
                 );
             }
+            if report.log_items_dropped > 0 {
+                println!("{} rerun log item(s) dropped (the logging thread fell behind)", report.log_items_dropped);
+            }
             let i = &report.ingest;
             let skipped =
                 [(i.corrupt, "unreadable"), (i.unposed, "without a pose"), (i.out_of_order, "out of time order")]

@@ -347,6 +347,8 @@ pub struct SessionReport {
     /// Why the stream ended early, if it did (a recording unreadable from some
     /// frame on); the interactions before it are kept.
     pub stream_error: Option<String>,
+    /// rerun log items dropped because the logging thread fell behind.
+    pub log_items_dropped: u64,
     /// From the start of the session to the last twin written (wall clock).
     pub wall_s: f64,
 }
@@ -690,6 +692,7 @@ pub fn run_session(
             interactions,
             failed,
             stream_error,
+            log_items_dropped: control.viz.dropped_items(),
             wall_s: started.elapsed().as_secs_f64(),
         };
         let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Other(e.to_string()))?;
