@@ -183,7 +183,20 @@ fn synthetic_recording_without_hand_has_no_window() {
         assert!(events.is_empty(), "{det:?}: {events:?}");
         assert!(frames.iter().all(|f| f.phase == Phase::Scan));
     }
+    // The MPS output kept elsewhere (`--mps DIR`): found there, and only there.
+    let elsewhere = tmp("synth-nohand-mps");
+    std::fs::rename(dir.join("mps"), &elsewhere).unwrap();
+    let found = |mps: Option<PathBuf>| {
+        let o = open_recording(&dir, &RecordingOptions { mps, ..opts(DetectorKind::None) }).unwrap();
+        [o.trajectory_path.is_some(), o.hands_path.is_some(), o.points_path.is_some()]
+    };
+    assert_eq!(found(None), [false; 3], "nothing beside the recording any more");
+    assert_eq!(found(Some(elsewhere.clone())), [true; 3]);
+    let missing = elsewhere.join("nope");
+    let e = open_recording(&dir, &RecordingOptions { mps: Some(missing.clone()), ..opts(DetectorKind::None) });
+    assert!(e.err().is_some_and(|e| e.to_string().contains(&missing.display().to_string())));
     let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&elsewhere);
 }
 
 /// `aim capture crop`'s frame: the undistorted frame cut to the object region is

@@ -2,12 +2,15 @@
 //! trajectory and hand tracking found beside it, the object region, the undistortion
 //! and the motion-window detector. Used by `aim capture ...`, the live session and tests.
 //!
-//! Files looked for beside a recording (a `.vrs` file's folder, or the recording folder):
-//! `mps/slam/closed_loop_trajectory.csv` or `closed_loop_trajectory.csv`;
-//! `mps/hand_tracking/wrist_and_palm_poses.csv` or `wrist_and_palm_poses.csv`;
-//! `object_region.json` (`{"min": [x, y, z], "max": [x, y, z]}`, world frame, or a
-//! list of them: one per object the recording's interactions move);
-//! `mps/slam/semidense_points.csv.gz` or `semidense_points.csv.gz`.
+//! MPS files are looked for in the MPS output folder when one is given
+//! (`RecordingOptions::mps`), else beside the recording (a `.vrs` file's folder, or
+//! the recording folder) in `mps/` and then in the folder itself: in each,
+//! `slam/closed_loop_trajectory.csv` (or under `trajectory/`, or flat);
+//! `hand_tracking/wrist_and_palm_poses.csv` (or flat, or
+//! `hand_tracking/hand_tracking_results.csv`); `slam/semidense_points.csv.gz` (or
+//! `.csv`, or flat). `object_region.json` (`{"min": [x, y, z], "max": [x, y, z]}`,
+//! world frame, or a list of them: one per object the recording's interactions
+//! move) is looked for beside the recording.
 
 use std::path::{Path, PathBuf};
 
@@ -66,6 +69,9 @@ pub struct RecordingOptions {
     pub hands: Option<PathBuf>,
     /// MPS semidense_points.csv(.gz).
     pub points: Option<PathBuf>,
+    /// An MPS output folder (slam/, hand_tracking/) to find the files above in,
+    /// instead of beside the recording.
+    pub mps: Option<PathBuf>,
     pub region: Option<ObjectRegion>,
     pub vignetting: Option<PathBuf>,
     /// MPS online_calibration.jsonl: use the camera-rgb of its first line (the start of
@@ -85,6 +91,7 @@ impl Default for RecordingOptions {
             trajectory: None,
             hands: None,
             points: None,
+            mps: None,
             region: None,
             vignetting: None,
             online_calibration: None,
@@ -131,44 +138,43 @@ fn first_existing(base: &Path, names: &[&str]) -> Option<PathBuf> {
     names.iter().map(|n| base.join(n)).find(|p| p.is_file())
 }
 
+/// The first of `names` (relative to an MPS output folder) in any of `roots`, in order.
+fn find_mps(roots: &[PathBuf], names: &[&str]) -> Option<PathBuf> {
+    roots.iter().find_map(|r| first_existing(r, names))
+}
+
 /// Open a recording (VRS file, synthetic Aria-like folder, image folder, AiM dataset).
 pub fn open_recording(path: &Path, opts: &RecordingOptions) -> Result<Opened> {
     let source = open_source(path, opts.fps)?;
     let base = if path.is_dir() { path.to_path_buf() } else { path.parent().unwrap_or(Path::new(".")).to_path_buf() };
-    let trajectory_path = opts.trajectory.clone().or_else(|| {
-        opts.discover
-            .then(|| first_existing(&base, &["mps/slam/closed_loop_trajectory.csv", "closed_loop_trajectory.csv"]))
-            .flatten()
-    });
-    let hands_path = opts.hands.clone().or_else(|| {
-        opts.discover
-            .then(|| {
-                first_existing(
-                    &base,
-                    &[
-                        "mps/hand_tracking/wrist_and_palm_poses.csv",
-                        "wrist_and_palm_poses.csv",
-                        "mps/hand_tracking/hand_tracking_results.csv",
-                    ],
-                )
-            })
-            .flatten()
-    });
-    let points_path = opts.points.clone().or_else(|| {
-        opts.discover
-            .then(|| {
-                first_existing(
-                    &base,
-                    &[
-                        "mps/slam/semidense_points.csv.gz",
-                        "semidense_points.csv.gz",
-                        "mps/slam/semidense_points.csv",
-                        "semidense_points.csv",
-                    ],
-                )
-            })
-            .flatten()
-    });
+    let mps_roots = match &opts.mps {
+        Some(dir) if dir.is_dir() => vec![dir.clone()],
+        Some(dir) => return Err(Error::bad_file(dir, "no such MPS folder")),
+        None if opts.discover => vec![base.join("mps"), base.clone()],
+        None => Vec::new(),
+    };
+    let find = |given: &Option<PathBuf>, names: &[&str]| given.clone().or_else(|| find_mps(&mps_roots, names));
+    let trajectory_path = find(
+        &opts.trajectory,
+        &["slam/closed_loop_trajectory.csv", "trajectory/closed_loop_trajectory.csv", "closed_loop_trajectory.csv"],
+    );
+    let hands_path = find(
+        &opts.hands,
+        &[
+            "hand_tracking/wrist_and_palm_poses.csv",
+            "wrist_and_palm_poses.csv",
+            "hand_tracking/hand_tracking_results.csv",
+        ],
+    );
+    let points_path = find(
+        &opts.points,
+        &[
+            "slam/semidense_points.csv.gz",
+            "semidense_points.csv.gz",
+            "slam/semidense_points.csv",
+            "semidense_points.csv",
+        ],
+    );
     let regions = match opts.region {
         Some(r) => vec![r],
         None if opts.discover => match first_existing(&base, &["object_region.json"]) {

@@ -69,7 +69,12 @@ pub enum Capture {
 
 #[derive(clap::Args)]
 pub struct Common {
-    /// MPS closed_loop_trajectory.csv (default: looked for beside the recording).
+    /// MPS output folder (slam/, hand_tracking/) with the recording's trajectory,
+    /// hand tracking and semidense points (default: mps/ beside the recording, or
+    /// the files themselves beside it).
+    #[arg(long)]
+    mps: Option<PathBuf>,
+    /// MPS closed_loop_trajectory.csv (default: found in --mps or beside the recording).
     #[arg(long)]
     trajectory: Option<PathBuf>,
     /// MPS wrist_and_palm_poses.csv or hand_tracking_results.csv (default: beside the recording).
@@ -125,6 +130,7 @@ impl Common {
             trajectory: self.trajectory.clone(),
             hands: self.hands.clone(),
             points: self.points.clone(),
+            mps: self.mps.clone(),
             online_calibration: self.online_calibration.clone(),
             region,
             detector,

@@ -44,7 +44,7 @@ pub struct Args {
 #[derive(clap::Args, Clone, Debug, Default)]
 pub struct RerunArgs {
     /// Save a rerun recording of the run (.rrd; open with `rerun FILE`).
-    #[arg(long, value_name = "FILE.rrd")]
+    #[arg(long, value_name = "FILE.rrd", visible_alias = "rerun")]
     pub rrd: Option<PathBuf>,
     /// Stream to a running rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy.
     #[arg(long, value_name = "URL", conflicts_with = "rrd")]
