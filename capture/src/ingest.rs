@@ -120,12 +120,10 @@ impl ClockOrder {
         match self.last_ns {
             Some(last) if p.timestamp_ns <= last => {
                 if !self.skipping {
+                    let (now_s, last_s) = (p.timestamp_ns as f64 * 1e-9, last as f64 * 1e-9);
                     tracing::warn!(
-                        "{source}: the clock jumps back at frame {} ({:.3} s after {:.3} s); skipping frames until it passes {:.3} s",
-                        p.frame.index,
-                        p.timestamp_ns as f64 * 1e-9,
-                        last as f64 * 1e-9,
-                        last as f64 * 1e-9
+                        "{source}: the clock jumps back at frame {} ({now_s:.3} s after {last_s:.3} s); skipping frames until it passes {last_s:.3} s",
+                        p.frame.index
                     );
                 }
                 self.skipping = true;

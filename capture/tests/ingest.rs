@@ -158,9 +158,10 @@ impl FrameSource for ClockJumpsBack {
 
 #[test]
 fn frames_where_the_clock_jumps_back_are_skipped_and_counted() {
-    let (src, p) = setup(3); // 24 frames, 50 ms apart
-                             // From frame 12 on the clock reads 200 ms early (4 frames' worth): frames 12-15
-                             // fall at or before frame 11's time and are skipped; frame 16 is after it.
+    // 24 frames, 50 ms apart. From frame 12 on the clock reads 200 ms early (4
+    // frames' worth): frames 12-15 fall at or before frame 11's time and are
+    // skipped; frame 16 is after it.
+    let (src, p) = setup(3);
     let src = Box::new(ClockJumpsBack { inner: src, from: 12, back_ns: 200_000_000 });
     let ingest = Ingest::spawn(src, p, PhaseTagger::none(), IngestConfig::default()).unwrap();
     let frames: Vec<_> = (&ingest)

@@ -178,12 +178,12 @@ impl StaticConfig {
     /// first densification and the densification and SH intervals are rates and
     /// stay.
     pub fn compressed(&self, fraction: f64) -> Self {
-        let scale = |n: u32| ((f64::from(n) * fraction).round() as u32).max(1);
+        // 0 (never) stays 0; anything else stays at least 1.
+        let scale = |n: u32| if n == 0 { 0 } else { ((f64::from(n) * fraction).round() as u32).max(1) };
         let mut c = self.clone();
         c.iterations = scale(self.iterations);
         c.density.until_iter = scale(self.density.until_iter);
-        c.density.opacity_reset_interval =
-            if self.density.opacity_reset_interval == 0 { 0 } else { scale(self.density.opacity_reset_interval) };
+        c.density.opacity_reset_interval = scale(self.density.opacity_reset_interval);
         c
     }
 
