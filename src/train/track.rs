@@ -1442,6 +1442,73 @@ impl NodeTracker {
         changed
     }
 
+    /// The coarse grid of part `p`'s end poses (about its centre) that the global
+    /// search scores: turns in `search_step` about each of the object's box
+    /// axes (`box_axes`; and the part's own axis) through the edges of the part's box, and
+    /// slides along those axes; empty for a part of fewer than three Gaussians.
+    /// `around`: points whose box's edges are pivots too (a piece of a door
+    /// turns about the door's edge, not its own).
+    fn end_pose_grid(&self, parts: &TrackedParts, p: usize, around: &[Vec3]) -> Vec<NodePose> {
+        let step = self.config.track.search_step;
+        let last = parts.poses.len() - 1;
+        let means: Vec<Vec3> = (0..self.gaussians.len()).map(|i| self.gaussians.mean(i)).collect();
+        let members: Vec<Vec3> =
+            self.gaussians_labelled(&parts.node_part, p + 1).into_iter().map(|i| means[i]).collect();
+        if members.len() < 3 {
+            return Vec::new();
+        }
+        let principal = box_axes(&means);
+        let c = parts.centres[p];
+        let own = extract_joint(&parts.poses[last][p].to_rigid(c), c.as_dvec3()).axis.as_vec3();
+        // Each candidate axis with the two directions across it that bound the
+        // part's box (the object's other box axes, so the pivots are the box's
+        // edges).
+        let mut frames: Vec<(Vec3, Vec3, Vec3)> =
+            (0..3).map(|k| (principal[k], principal[(k + 1) % 3], principal[(k + 2) % 3])).collect();
+        if principal.iter().all(|a| a.dot(own).abs() < 0.95) {
+            let (u, v) = own.any_orthonormal_pair();
+            frames.push((own, u, v));
+        }
+        let extent = |points: &[Vec3], d: Vec3| {
+            points
+                .iter()
+                .map(|m| (*m - c).dot(d))
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x), hi.max(x)))
+        };
+        let mut hypotheses = Vec::new();
+        for &(a, u, v) in &frames {
+            let ((u0, u1), (v0, v1), (a0, a1)) = (extent(&members, u), extent(&members, v), extent(&members, a));
+            let mut pivots = vec![(u0, v0), (u0, v1), (u1, v0), (u1, v1)];
+            if !around.is_empty() {
+                let ((w0, w1), (x0, x1)) = (extent(around, u), extent(around, v));
+                pivots.extend([(w0, x0), (w0, x1), (w1, x0), (w1, x1)]);
+            }
+            for (pu, pv) in pivots {
+                let pivot = c + pu * u + pv * v;
+                let turns = (std::f32::consts::PI / step).floor() as i32;
+                for k in (-turns..=turns).filter(|&k| k != 0) {
+                    let r = Quat::from_axis_angle(a, k as f32 * step);
+                    hypotheses.push(NodePose { rotation: r, translation: r * (c - pivot) + pivot - c });
+                }
+            }
+            // Slides up to the object's extent along the axis (a slider on a
+            // knife's handle moves farther than its own size), in steps of at most
+            // half the part's own length along it, so a small part's grid pose
+            // overlaps where it truly went.
+            let (lo, hi) = extent(&means, a);
+            let length = (a1 - a0).max(u1 - u0).max(v1 - v0).max(hi - lo);
+            let slide_step = (0.5 * (a1 - a0)).clamp(length / 24.0, length / 8.0);
+            let slides = (length / slide_step).round() as i32;
+            for k in 1..=slides {
+                for sign in [-1.0f32, 1.0] {
+                    hypotheses
+                        .push(NodePose { rotation: Quat::IDENTITY, translation: a * (sign * slide_step * k as f32) });
+                }
+            }
+        }
+        hypotheses
+    }
+
     /// The global search of part `p`'s end pose (see `search_end_poses`); whether
     /// a searched pose replaced the one it had. `from_rest`: the part is a
     /// candidate at rest (found on the end state), given up before the refits
@@ -1458,65 +1525,12 @@ impl NodeTracker {
         }
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
         let last = parts.poses.len() - 1;
-        let means: Vec<Vec3> = (0..self.gaussians.len()).map(|i| self.gaussians.mean(i)).collect();
-        let principal = principal_axes(&means);
-        let members: Vec<Vec3> =
-            self.gaussians_labelled(&parts.node_part, p + 1).into_iter().map(|i| means[i]).collect();
-        if members.len() < 3 {
+        let grid = self.end_pose_grid(&parts, p, &[]);
+        if grid.is_empty() {
             return false;
         }
-        let c = parts.centres[p];
-        let own = extract_joint(&parts.poses[last][p].to_rigid(c), c.as_dvec3()).axis.as_vec3();
-        // Each candidate axis with the two directions across it that bound the
-        // part's box (the object's other principal axes, so the pivots are the
-        // box's edges).
-        let mut frames: Vec<(Vec3, Vec3, Vec3)> =
-            (0..3).map(|k| (principal[k], principal[(k + 1) % 3], principal[(k + 2) % 3])).collect();
-        if principal.iter().all(|a| a.dot(own).abs() < 0.95) {
-            let (u, v) = own.any_orthonormal_pair();
-            frames.push((own, u, v));
-        }
-        let mut scored: Vec<(f32, NodePose)> = Vec::new();
-        for (a, u, v) in &frames {
-            let (a, u, v) = (a, *u, *v);
-            let extent = |d: Vec3| {
-                let proj: Vec<f32> = members.iter().map(|m| (*m - c).dot(d)).collect();
-                (
-                    proj.iter().copied().fold(f32::INFINITY, f32::min),
-                    proj.iter().copied().fold(f32::NEG_INFINITY, f32::max),
-                )
-            };
-            let ((u0, u1), (v0, v1), (a0, a1)) = (extent(u), extent(v), extent(*a));
-            let mut hypotheses = Vec::new();
-            for (pu, pv) in [(u0, v0), (u0, v1), (u1, v0), (u1, v1)] {
-                let pivot = c + pu * u + pv * v;
-                let turns = (std::f32::consts::PI / step).floor() as i32;
-                for k in (-turns..=turns).filter(|&k| k != 0) {
-                    let r = Quat::from_axis_angle(*a, k as f32 * step);
-                    hypotheses.push(NodePose { rotation: r, translation: r * (c - pivot) + pivot - c });
-                }
-            }
-            // Slides up to the object's extent along the axis (a slider on a
-            // knife's handle moves farther than its own size), in steps of at most
-            // half the part's own length along it, so a small part's grid pose
-            // overlaps where it truly went.
-            let span = {
-                let proj = means.iter().map(|m| m.dot(*a));
-                let (lo, hi) = proj.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x), hi.max(x)));
-                hi - lo
-            };
-            let length = (a1 - a0).max(u1 - u0).max(v1 - v0).max(span);
-            let slide_step = (0.5 * (a1 - a0)).clamp(length / 24.0, length / 8.0);
-            let slides = (length / slide_step).round() as i32;
-            for k in 1..=slides {
-                for sign in [-1.0f32, 1.0] {
-                    hypotheses
-                        .push(NodePose { rotation: Quat::IDENTITY, translation: *a * (sign * slide_step * k as f32) });
-                }
-            }
-            let losses = self.end_losses_of_part_poses(&parts, p, &hypotheses, &check);
-            scored.extend(losses.into_iter().zip(hypotheses));
-        }
+        let mut scored: Vec<(f32, NodePose)> =
+            self.end_losses_of_part_poses(&parts, p, &grid, &check).into_iter().zip(grid).collect();
         scored.sort_by(|a, b| a.0.total_cmp(&b.0));
         if from_rest {
             // The refits cost a minute; a group no grid pose moves for the better
@@ -1976,6 +1990,53 @@ fn principal_axes(points: &[Vec3]) -> [Vec3; 3] {
         m -= lambda * glam::Mat3::from_cols(v * v.x, v * v.y, v * v.z);
         axes[k] = v;
     }
+    // The third is across the first two: power iteration on what the deflation
+    // leaves follows rounding when the points are exactly flat.
+    axes[2] = axes[0].cross(axes[1]).normalize_or(Vec3::Z);
+    axes
+}
+
+/// The axes of an object's box: its principal axes (largest spread first),
+/// turned together to where the box that holds the points (98 % of them along
+/// each axis, so floaters do not count) is smallest; each side counts at least
+/// a hundredth of the longest, so a flat object's box is its outline. A man-made
+/// object's faces bound it in three directions, and the covariance's axes tilt
+/// with uneven content (fridge_two_doors' start state: 6 to 10 degrees, enough
+/// that no grid hinge of the end-pose search lay near its doors'). Coordinate
+/// descent: turns about each axis in turn, first within 45 degrees in 3-degree
+/// steps (a box is the same turned 90 degrees), then within 4 in half-degree steps.
+fn box_axes(points: &[Vec3]) -> [Vec3; 3] {
+    let mut axes = principal_axes(points);
+    if points.len() < 3 {
+        return axes;
+    }
+    let (lo, hi) = (points.len() / 100, points.len() - 1 - points.len() / 100);
+    let volume = |axes: &[Vec3; 3]| -> f64 {
+        let sides = axes.map(|a| {
+            let mut along: Vec<f32> = points.iter().map(|p| p.dot(a)).collect();
+            let (_, &mut top, _) = along.select_nth_unstable_by(hi, f32::total_cmp);
+            let (_, &mut bottom, _) = along.select_nth_unstable_by(lo, f32::total_cmp);
+            f64::from(top - bottom)
+        });
+        let longest = sides.iter().copied().fold(0.0, f64::max);
+        sides.iter().map(|s| s.max(0.01 * longest)).product()
+    };
+    for (range, step) in [(45.0f32, 3.0f32); 3].into_iter().chain([(4.0, 0.5); 3]) {
+        for k in 0..3 {
+            let steps = (range / step).round() as i32;
+            let scored: Vec<(f64, [Vec3; 3])> = (-steps..=steps)
+                .into_par_iter()
+                .map(|i| {
+                    let q = Quat::from_axis_angle(axes[k], (i as f32 * step).to_radians());
+                    let turned = axes.map(|a| (q * a).normalize());
+                    (volume(&turned), turned)
+                })
+                .collect();
+            // The smallest, the first of equals (the unturned axes when nothing is smaller).
+            let unturned = (volume(&axes), axes);
+            axes = scored.into_iter().fold(unturned, |a, b| if b.0 < a.0 { b } else { a }).1;
+        }
+    }
     axes
 }
 
@@ -2108,6 +2169,34 @@ mod tests {
     fn end_state_views_pull_a_part_to_its_true_end_pose() {
         for alpha_weight in [0.0, 1.0] {
             end_state_refit_reaches_the_truth(alpha_weight);
+        }
+    }
+
+    #[test]
+    fn box_axes_follow_the_faces_not_the_content() {
+        // The walls of a 0.8 x 0.55 x 1.0 box, turned 20 degrees about z and 5
+        // about x, with a heavy lump inside one corner that tilts the covariance.
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let half = Vec3::new(0.4, 0.275, 0.5);
+        let turn = Quat::from_rotation_z(20f32.to_radians()) * Quat::from_rotation_x(5f32.to_radians());
+        let mut points = Vec::new();
+        for _ in 0..6000 {
+            let mut p =
+                Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+            let face = rng.random_range(0..3usize);
+            p[face] = p[face].signum();
+            points.push(turn * (p * half));
+        }
+        for _ in 0..3000 {
+            let p = Vec3::new(rng.random_range(0.1..0.35), rng.random_range(0.0..0.25), rng.random_range(-0.45..-0.1));
+            points.push(turn * p);
+        }
+        let principal = principal_axes(&points);
+        let tilt =
+            |a: Vec3| [Vec3::X, Vec3::Y, Vec3::Z].map(|e| (turn * e).dot(a).abs()).into_iter().fold(0.0, f32::max);
+        assert!(principal.iter().any(|&a| tilt(a) < 3f32.to_radians().cos()), "the lump tilts the covariance");
+        for a in box_axes(&points) {
+            assert!(tilt(a) > 1f32.to_radians().cos(), "axis {a:?} is {} deg off a face", tilt(a).acos().to_degrees());
         }
     }
 
