@@ -10,7 +10,7 @@
 //! searched pose explains the end state clearly better than rest. Its path
 //! between rest and that pose is then fitted along the same screw motion.
 
-use glam::{DMat3, DQuat, Vec3};
+use glam::{DMat3, DQuat, DVec3, Vec3};
 
 use super::{evenly_spread, NodePose, NodeTracker, TrackedParts};
 use crate::motion::Rigid;
@@ -32,9 +32,6 @@ const PATH_STEPS: usize = 10;
 const SEED_NODES: usize = 24;
 /// ... whose poses are searched on this many end-state views ...
 const SEED_VIEWS: usize = 6;
-/// ... counted as one when they carry every node of the group to within this
-/// share of the object's size ...
-const SAME_MOTION: f32 = 0.01;
 /// ... and chunks of about this many nodes go with the one that explains them best ...
 const FINE_NODES: usize = 8;
 /// ... into at most this many pieces.
@@ -190,7 +187,8 @@ impl NodeTracker {
     /// one motion each does (consensus on the end state). The group is cut into
     /// spatial seeds of about `SEED_NODES` nodes; each seed's best coarse end
     /// pose (pivots on its own box's edges and on the group's) that beats rest
-    /// is a motion (seeds that chose the same are one). Then the group is cut
+    /// is a motion (motions within a grid step of each other count as one:
+    /// axes, amounts and hinge lines alike). Then the group is cut
     /// finer (`FINE_NODES`), and each fine chunk goes with the motion whose
     /// moving it explains the end state best, when one beats leaving it at rest:
     /// a measure of the whole images, so it counts where the chunk was as well as
@@ -223,20 +221,32 @@ impl NodeTracker {
                 hypotheses.push(pose.to_rigid(parts.centres[p]));
             }
         }
-        // Seeds that chose the same grid pose found one motion: one hypothesis.
-        let centres: Vec<Vec3> = nodes.iter().map(|&k| self.node_centres[k]).collect();
-        let same = |a: &Rigid, b: &Rigid| {
-            centres.iter().all(|c| {
-                let x = c.as_dvec3();
-                a.apply(x).distance(b.apply(x)) < f64::from(SAME_MOTION * self.object_size)
-            })
+        // Motions within a grid step of each other are one (seeds of one door
+        // land on neighbouring grid poses): each is labelled with the first
+        // motion it is near.
+        let radius = {
+            let pts: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
+            super::mean_radius(&pts)
         };
-        let mut motions: Vec<Rigid> = Vec::new();
-        for h in hypotheses {
-            if !motions.iter().any(|m| same(m, &h)) {
-                motions.push(h);
+        let centre = self.labelled_centroid(&group.node_part, p + 1).as_dvec3();
+        let joints: Vec<_> = hypotheses.iter().map(|h| crate::motion::extract_joint(h, centre)).collect();
+        let step = f64::from(self.config.track.search_step);
+        let near = |a: &crate::motion::JointEstimate, b: &crate::motion::JointEstimate| {
+            if a.kind != b.kind || a.axis.dot(b.axis) < (1.5 * step).cos() {
+                return false;
             }
-        }
+            match a.kind {
+                crate::motion::JointKind::Revolute => {
+                    let gap = 0.5
+                        * ((b.origin - a.origin).cross(a.axis).length() + (a.origin - b.origin).cross(b.axis).length());
+                    gap < 0.5 * radius && (a.amount - b.amount).abs() <= 1.5 * step
+                }
+                crate::motion::JointKind::Prismatic => (a.amount - b.amount).abs() < 0.3 * a.amount.max(b.amount),
+            }
+        };
+        let label: Vec<usize> =
+            (0..joints.len()).map(|h| (0..=h).find(|&g| near(&joints[g], &joints[h])).unwrap_or(h)).collect();
+        let motions = hypotheses;
         // Each fine chunk goes with the motion that explains the end state best
         // with it moved, if any beats rest: a seed can straddle two parts, a
         // fine chunk less so.
@@ -246,7 +256,7 @@ impl NodeTracker {
             let gains = self.gains_of_motions(&base, chunk, &motions, &check);
             let best = gains.iter().enumerate().filter(|(_, g)| **g > 0.0).max_by(|a, b| a.1.total_cmp(b.1));
             if let Some((m, _)) = best {
-                chosen[m].extend_from_slice(chunk);
+                chosen[label[m]].extend_from_slice(chunk);
             }
         }
         let graph = self.node_graph();
@@ -673,7 +683,7 @@ fn screw_fraction(m: &Rigid, f: f64) -> Rigid {
 
 #[cfg(test)]
 mod tests {
-    use glam::{DVec3, Quat};
+    use glam::Quat;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
