@@ -9,6 +9,11 @@
 //! searched globally as a tracked part's is, and it becomes a part only when a
 //! searched pose explains the end state clearly better than rest. Its path
 //! between rest and that pose is then fitted along the same screw motion.
+//! Parts side by side are one group, which no one pose explains: a group
+//! refused whole is split into the pieces one motion each explains
+//! (`split_group`), and each piece is a candidate. Pieces of tracked parts and
+//! of candidates that the end state shows wrong where they moved go back to the
+//! base first, to be found on their own.
 
 use glam::{DMat3, DQuat, DVec3, Vec3};
 
