@@ -1447,8 +1447,9 @@ impl NodeTracker {
     /// axes (`box_axes`; and the part's own axis) through the edges of the part's box, and
     /// slides along those axes; empty for a part of fewer than three Gaussians.
     /// `around`: points whose box's edges are pivots too (a piece of a door
-    /// turns about the door's edge, not its own).
-    fn end_pose_grid(&self, parts: &TrackedParts, p: usize, around: &[Vec3]) -> Vec<NodePose> {
+    /// turns about the door's edge, not its own). `principal`: the object's box
+    /// axes (`object_box_axes`, computed once by the caller for all its grids).
+    fn end_pose_grid(&self, parts: &TrackedParts, p: usize, around: &[Vec3], principal: [Vec3; 3]) -> Vec<NodePose> {
         let step = self.config.track.search_step;
         let last = parts.poses.len() - 1;
         let means: Vec<Vec3> = (0..self.gaussians.len()).map(|i| self.gaussians.mean(i)).collect();
@@ -1457,7 +1458,6 @@ impl NodeTracker {
         if members.len() < 3 {
             return Vec::new();
         }
-        let principal = box_axes(&means);
         let c = parts.centres[p];
         let own = extract_joint(&parts.poses[last][p].to_rigid(c), c.as_dvec3()).axis.as_vec3();
         // Each candidate axis with the two directions across it that bound the
@@ -1509,6 +1509,13 @@ impl NodeTracker {
         hypotheses
     }
 
+    /// The box axes (`box_axes`) of the start state's Gaussians: the candidate
+    /// hinge and slide directions of the end-pose search.
+    fn object_box_axes(&self) -> [Vec3; 3] {
+        let means: Vec<Vec3> = (0..self.gaussians.len()).map(|i| self.gaussians.mean(i)).collect();
+        box_axes(&means)
+    }
+
     /// The global search of part `p`'s end pose (see `search_end_poses`); whether
     /// a searched pose replaced the one it had. `from_rest`: the part is a
     /// candidate at rest (found on the end state), given up before the refits
@@ -1525,7 +1532,7 @@ impl NodeTracker {
         }
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
         let last = parts.poses.len() - 1;
-        let grid = self.end_pose_grid(&parts, p, &[]);
+        let grid = self.end_pose_grid(&parts, p, &[], self.object_box_axes());
         if grid.is_empty() {
             return false;
         }
@@ -1824,16 +1831,29 @@ fn apply_step(poses: &mut [NodePose], step: &[f32]) {
 /// prismatic: amounts within 20 %.
 fn same_joint(ja: &crate::motion::JointEstimate, jb: &crate::motion::JointEstimate, median_radius: f64) -> bool {
     const MERGE_AXIS_ANGLE: f64 = 0.2;
-    if ja.kind != jb.kind || ja.axis.dot(jb.axis) < MERGE_AXIS_ANGLE.cos() {
+    joints_agree(ja, jb, MERGE_AXIS_ANGLE, 0.5 * median_radius, 0.2)
+}
+
+/// Whether two joints are one motion within tolerances: the same kind, axes
+/// within `angle` radians; revolute: axis lines within `line_gap` of each
+/// other and turns within `angle`; prismatic: slides within `share` of the larger.
+fn joints_agree(
+    ja: &crate::motion::JointEstimate,
+    jb: &crate::motion::JointEstimate,
+    angle: f64,
+    line_gap: f64,
+    share: f64,
+) -> bool {
+    if ja.kind != jb.kind || ja.axis.dot(jb.axis) < angle.cos() {
         return false;
     }
     match ja.kind {
         crate::motion::JointKind::Revolute => {
-            let line_gap = 0.5
+            let gap = 0.5
                 * ((jb.origin - ja.origin).cross(ja.axis).length() + (ja.origin - jb.origin).cross(jb.axis).length());
-            line_gap < 0.5 * median_radius && (ja.amount - jb.amount).abs() < MERGE_AXIS_ANGLE
+            gap < line_gap && (ja.amount - jb.amount).abs() < angle
         }
-        crate::motion::JointKind::Prismatic => (ja.amount - jb.amount).abs() < 0.2 * ja.amount.max(jb.amount),
+        crate::motion::JointKind::Prismatic => (ja.amount - jb.amount).abs() < share * ja.amount.max(jb.amount),
     }
 }
 

@@ -213,17 +213,18 @@ impl NodeTracker {
         let group_points: Vec<Vec3> =
             self.gaussians_labelled(&group.node_part, p + 1).into_iter().map(|i| self.gaussians.mean(i)).collect();
         let seeds = self.spatial_chunks(nodes, (nodes.len() / SEED_NODES).max(2));
-        let mut hypotheses: Vec<Rigid> = Vec::new();
+        let axes = self.object_box_axes();
+        let mut motions: Vec<Rigid> = Vec::new();
         for seed in &seeds {
             let parts = self.with_candidate(&base, seed);
-            let mut grid = self.end_pose_grid(&parts, p, &group_points);
+            let mut grid = self.end_pose_grid(&parts, p, &group_points, axes);
             grid.push(NodePose::IDENTITY);
             let losses = self.end_losses_of_part_poses(&parts, p, &grid, &check);
             let rest = losses[losses.len() - 1];
             let best = losses.iter().zip(&grid).min_by(|a, b| a.0.total_cmp(b.0));
             if let Some((&loss, pose)) = best.filter(|(&loss, _)| loss < rest) {
                 tracing::debug!(loss, rest, "stage II: a seed's best coarse end pose");
-                hypotheses.push(pose.to_rigid(parts.centres[p]));
+                motions.push(pose.to_rigid(parts.centres[p]));
             }
         }
         // Motions within a grid step of each other are one (seeds of one door
@@ -233,25 +234,12 @@ impl NodeTracker {
             let pts: Vec<DVec3> = nodes.iter().map(|&k| self.node_centres[k].as_dvec3()).collect();
             super::mean_radius(&pts)
         };
-        let centre = self.labelled_centroid(&group.node_part, p + 1).as_dvec3();
-        let joints: Vec<_> = hypotheses.iter().map(|h| crate::motion::extract_joint(h, centre)).collect();
-        let step = f64::from(self.config.track.search_step);
-        let near = |a: &crate::motion::JointEstimate, b: &crate::motion::JointEstimate| {
-            if a.kind != b.kind || a.axis.dot(b.axis) < (1.5 * step).cos() {
-                return false;
-            }
-            match a.kind {
-                crate::motion::JointKind::Revolute => {
-                    let gap = 0.5
-                        * ((b.origin - a.origin).cross(a.axis).length() + (a.origin - b.origin).cross(b.axis).length());
-                    gap < 0.5 * radius && (a.amount - b.amount).abs() <= 1.5 * step
-                }
-                crate::motion::JointKind::Prismatic => (a.amount - b.amount).abs() < 0.3 * a.amount.max(b.amount),
-            }
-        };
+        let centre = group.centres[p].as_dvec3();
+        let joints: Vec<_> = motions.iter().map(|m| crate::motion::extract_joint(m, centre)).collect();
+        let step = 1.5 * f64::from(self.config.track.search_step);
+        let near = |a, b| super::joints_agree(a, b, step, 0.5 * radius, 0.3);
         let label: Vec<usize> =
             (0..joints.len()).map(|h| (0..=h).find(|&g| near(&joints[g], &joints[h])).unwrap_or(h)).collect();
-        let motions = hypotheses;
         // Each fine chunk goes with the motion that explains the end state best
         // with it moved, if any beats rest: a seed can straddle two parts, a
         // fine chunk less so.
