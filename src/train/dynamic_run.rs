@@ -351,7 +351,7 @@ fn run_node_track(
     tracker.merge_redundant_parts(&frames, &end_views);
     // Merge first, so that pieces that explain nothing are gone before a searched
     // pose lets them explain content the start state lacks (docs/training.md).
-    if tracker.search_end_poses(&end_views) > 0 {
+    if tracker.search_end_poses(&frames, &end_views) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
     }
     // A tracked part that still looks wrong where it moved is not a part.
@@ -360,7 +360,9 @@ fn run_node_track(
     if tracker.discover_on_end_state(&frames, &end_views, &returned) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
     }
-    if tracker.clean_parts(&frames, &end_views) > 0 {
+    // Parts take in the rest of their panels, then give back what does not move with them.
+    let grown = tracker.grow_parts(&frames, &end_views);
+    if tracker.clean_parts(&frames, &end_views) + grown > 0 {
         tracker.refit_end_poses(&end_views);
     }
     let (parts, labels) = tracker.analyse();
