@@ -360,9 +360,7 @@ fn run_node_track(
     if tracker.discover_on_end_state(&frames, &end_views, &returned) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
     }
-    // Parts take in the rest of their panels, then give back what does not move with them.
-    let grown = tracker.grow_parts(&frames, &end_views);
-    if tracker.clean_parts(&frames, &end_views) + grown > 0 {
+    if tracker.clean_parts(&frames, &end_views) > 0 {
         tracker.refit_end_poses(&end_views);
     }
     let (parts, labels) = tracker.analyse();

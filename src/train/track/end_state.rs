@@ -417,89 +417,6 @@ impl NodeTracker {
         (groups, threshold)
     }
 
-    /// The converse of `clean_parts`: base nodes beside a part (node-graph
-    /// neighbours of its nodes), in spatial chunks of about `GROW_NODES`, join it
-    /// when the motion frames and the end state are explained better with them
-    /// moving with it, round after round until no chunk joins. A part found on
-    /// the end state is the piece of its panel that looked clearly wrong at
-    /// rest; the rest of the panel, the colour of what lay behind it, is taken
-    /// in here (storage_complex: doors found as 21-23 of their 83-85 nodes).
-    /// A chunk must also look right where it moved (median residual, relit, of
-    /// its seen nodes below the discovery's threshold): base nodes of another
-    /// motion that no part explained are better moved with a door beside them
-    /// than left where the end state shows them gone, but wrong there, and
-    /// would tilt the door's axis. Returns the nodes that joined a part.
-    pub fn grow_parts(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
-        const GROW_NODES: usize = 8;
-        const ROUNDS: usize = 16;
-        let Some(parts) = self.articulation.clone() else {
-            return 0;
-        };
-        let check = self.validation_views(frames, end_views);
-        if check.is_empty() || end_views.is_empty() {
-            return 0;
-        }
-        let views = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
-        let residual = self.node_residuals(&parts, 0, &views, false);
-        let mut seen: Vec<f32> = residual.iter().copied().filter(|r| r.is_finite()).collect();
-        if seen.is_empty() {
-            return 0;
-        }
-        seen.sort_by(f32::total_cmp);
-        let threshold = residual_threshold(&seen);
-        let graph = self.node_graph();
-        let n = self.node_centres.len();
-        let mut node_part = parts.node_part.clone();
-        let mut current = self.articulated_loss(&parts, &node_part, &check);
-        // The held part's nodes were judged when the hand took hold (`take_hold`).
-        let held = self.held_part().map(|p| p + 1);
-        // A chunk a part refused is not offered to it again.
-        let mut refused = vec![vec![false; n]; parts.centres.len() + 1];
-        let mut grown = 0;
-        for _ in 0..ROUNDS {
-            let before = grown;
-            for p in (1..=parts.centres.len()).filter(|&p| Some(p) != held) {
-                let frontier: Vec<usize> = (0..n)
-                    .filter(|&k| node_part[k] == 0 && !refused[p][k] && graph[k].iter().any(|&b| node_part[b] == p))
-                    .collect();
-                // Chunks within each connected stretch of the frontier: a strip's
-                // two sides (one on its own panel, one on the next) never share one.
-                let chunks: Vec<Vec<usize>> = connected_sets(&graph, &frontier)
-                    .into_iter()
-                    .flat_map(|side| self.spatial_chunks(&side, side.len().div_ceil(GROW_NODES)))
-                    .collect();
-                for chunk in chunks {
-                    let mut trial = node_part.clone();
-                    chunk.iter().for_each(|&k| trial[k] = p);
-                    let loss = self.articulated_loss(&parts, &trial, &check);
-                    let looks_right = || {
-                        let moved = TrackedParts { node_part: trial.clone(), ..parts.clone() };
-                        let (seen, median) = seen_median(&chunk, &self.node_residuals(&moved, p, &views, true));
-                        seen == 0 || median < threshold
-                    };
-                    if loss < current && looks_right() {
-                        (node_part, current) = (trial, loss);
-                        grown += chunk.len();
-                    } else {
-                        chunk.iter().for_each(|&k| refused[p][k] = true);
-                    }
-                }
-            }
-            if grown == before {
-                break;
-            }
-        }
-        if grown > 0 {
-            tracing::info!(
-                nodes = grown,
-                loss = current,
-                "stage II: base nodes beside parts that move with them joined them"
-            );
-            self.set_articulation(parts.relabelled(node_part));
-        }
-        grown
-    }
-
     /// The node graph's adjacency lists (each edge both ways).
     fn node_graph(&self) -> Vec<Vec<usize>> {
         let mut graph = vec![Vec::new(); self.node_centres.len()];
@@ -1158,48 +1075,6 @@ mod tests {
         assert!(!tracker.path_agrees(&open, &wrong, 0, &frames), "the turn the other way contradicts the frames");
         assert!(tracker.path_agrees(&half, &open, 0, &frames), "the whole turn agrees with the frames");
         assert!(tracker.path_agrees(&open, &wrong, 0, &[]), "without frames, any pose agrees");
-    }
-
-    #[test]
-    fn a_door_found_as_a_fragment_grows_to_the_whole_door_and_not_into_the_next() {
-        // Two doors in a row on one hinge line, at the base: the first turns a
-        // quarter turn, the second (beyond it) 72 degrees. Only the first door's
-        // outer strip is a part (as the end-state discovery finds the piece of
-        // a panel that looked clearly wrong at rest), at its true turn; the
-        // second is no part. The rest of the first door joins it; the base does
-        // not, nor does the second door, although the first's turn explains it
-        // better than rest does.
-        use std::f32::consts::FRAC_PI_2;
-        let doors = [
-            Door { from: 0.1, to: 0.5, hinge: 0.1, angle: -FRAC_PI_2 },
-            Door { from: 0.5, to: 0.9, hinge: 0.1, angle: -0.8 * FRAC_PI_2 },
-        ];
-        let (mut tracker, members, end) = panels(-0.9, 0.9, 2400, 256, &doors, 1.0);
-        let (_, _, half) = panels(-0.9, 0.9, 2400, 256, &doors, 0.5);
-        tracker.config.track.knots = 3;
-        let n = tracker.node_centres.len();
-        let node_of = |door: &[usize]| -> Vec<bool> {
-            let mut on = vec![false; n];
-            door.iter().for_each(|&i| on[tracker.binding[i] as usize] = true);
-            on
-        };
-        let (first, second) = (node_of(&members[0]), node_of(&members[1]));
-        let node_part: Vec<usize> =
-            tracker.node_centres.iter().map(|c| usize::from((0.38..0.5).contains(&c.x))).collect();
-        let c = tracker.labelled_centroid(&node_part, 1);
-        let open = turn_about(-FRAC_PI_2, Vec3::new(0.1, 0.0, 0.0), c);
-        tracker.set_articulation(parts_at(&tracker, &node_part, &[open]));
-        let fragment = node_part.iter().filter(|&&l| l == 1).count();
-        let door_nodes = first.iter().filter(|&&x| x).count();
-        assert!(2 * fragment < door_nodes, "the fragment: {fragment} of the door's {door_nodes} nodes");
-        let grown = tracker.grow_parts(&views_of(&half, 0.5, 4), &views_of(&end, 1.0, 16));
-        let parts = tracker.articulation.clone().expect("parts");
-        let count = |on: &dyn Fn(usize) -> bool| (0..n).filter(|&k| on(k) && parts.node_part[k] == 1).count();
-        let (door_in, next_in) = (count(&|k| first[k]), count(&|k| second[k]));
-        let base_in = count(&|k| !first[k] && !second[k]);
-        assert_eq!(grown, door_in + next_in + base_in - fragment);
-        assert!(door_in as f32 >= 0.9 * door_nodes as f32, "{door_in} of the door's {door_nodes} nodes in the part");
-        assert!(next_in + base_in <= 1, "{next_in} nodes of the next door and {base_in} of the base in the part");
     }
 
     #[test]
