@@ -32,19 +32,19 @@ pub struct Args {
 
 /// Wall time of each demo stage in units of this machine's rasterizer bench (one
 /// forward + backward of 50k Gaussians at 256 px, in ms), measured on the fridge
-/// (docs/benchmark.md, 2026-12-01: 7 / 63 / 79 / 14 s at a bench of ~58 ms; stages
-/// II and III again on 2026-12-02 with the end-state refit: 91 s at 62 ms):
-/// seconds = factor x bench ms.
+/// (docs/benchmark.md, 2026-12-04 fifth session: 5 / 39 / 123 / 9 s at the demo's
+/// own bench of 32 ms; stage II has grown since the first figures, 2026-12-01, by
+/// the end-state refit, search and discovery): seconds = factor x bench ms.
 const PLAN: [(&str, f64); 4] = [
     ("synthetic dataset", SYNTH_S_PER_BENCH_MS),
     ("stage I", STAGE1_S_PER_BENCH_MS),
     ("stages II and III", STAGE2_S_PER_BENCH_MS),
     ("twin meshes", MESH_S_PER_BENCH_MS),
 ];
-const SYNTH_S_PER_BENCH_MS: f64 = 0.12;
-const STAGE1_S_PER_BENCH_MS: f64 = 1.08;
-const STAGE2_S_PER_BENCH_MS: f64 = 1.47;
-const MESH_S_PER_BENCH_MS: f64 = 0.24;
+const SYNTH_S_PER_BENCH_MS: f64 = 0.16;
+const STAGE1_S_PER_BENCH_MS: f64 = 1.22;
+const STAGE2_S_PER_BENCH_MS: f64 = 3.84;
+const MESH_S_PER_BENCH_MS: f64 = 0.28;
 
 /// Print the plan with an estimate per stage from a quick measure of this machine.
 fn print_plan() {
