@@ -110,7 +110,10 @@ pub struct TrackConfig {
     pub freeze_rotation: f32,
     /// Motion frames (evenly spread) on which merging parts is tested.
     pub validation_frames: usize,
-    /// Relative loss increase within which a simpler set of parts is preferred.
+    /// Relative loss increase within which a simpler set of parts is preferred:
+    /// a part merged into the base (on the pixels the merge changes), a searched
+    /// end pose refused (on the refit's loss) or contradicted by the motion
+    /// frames (on the pixels the two paths change).
     pub merge_tolerance: f32,
     /// The merge test's per-pixel residual cap: content the start state lacks
     /// (a fridge's inside) costs the same whatever the parts do.
