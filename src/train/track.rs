@@ -1234,9 +1234,8 @@ impl NodeTracker {
             self.set_articulation(parts.relabelled(parts.node_part.clone()));
             return merged;
         }
-        let bg = Vec3::from(self.config.eval_background);
         let cap = self.config.track.validation_residual_cap;
-        let targets: Vec<Vec<f32>> = check.iter().map(|v| v.target(bg)).collect();
+        let targets = self.targets(&check);
         let mut node_part = parts.node_part.clone();
         let mut now = self.articulated_renders(&parts, &node_part, &check);
         let mut current = mean_residual(&now, &targets, cap);
@@ -1750,10 +1749,14 @@ impl NodeTracker {
 
     /// Mean robust photometric loss of `views` with the nodes assigned to parts by `node_part`.
     fn articulated_loss(&self, parts: &TrackedParts, node_part: &[usize], views: &[&TrainView]) -> f32 {
-        let bg = Vec3::from(self.config.eval_background);
-        let targets: Vec<Vec<f32>> = views.iter().map(|v| v.target(bg)).collect();
         let renders = self.articulated_renders(parts, node_part, views);
-        mean_residual(&renders, &targets, self.config.track.validation_residual_cap)
+        mean_residual(&renders, &self.targets(views), self.config.track.validation_residual_cap)
+    }
+
+    /// Each of `views`' images over the evaluation background (what `articulated_renders` is compared with).
+    fn targets(&self, views: &[&TrainView]) -> Vec<Vec<f32>> {
+        let bg = Vec3::from(self.config.eval_background);
+        views.iter().map(|v| v.target(bg)).collect()
     }
 
     /// The colour images of `views` (over the evaluation background) with the
@@ -1978,7 +1981,6 @@ impl ViewResiduals {
     }
 }
 
-/// The robust per-pixel residual: mean absolute error over the channels, capped at `cap`.
 /// Mean over the images of their mean per-pixel residual (`pixel_residuals`) against `targets`.
 fn mean_residual(renders: &[Vec<f32>], targets: &[Vec<f32>], cap: f32) -> f32 {
     let total: f32 = renders
@@ -2009,6 +2011,7 @@ fn residuals_where_changed(a: &[Vec<f32>], b: &[Vec<f32>], targets: &[Vec<f32>],
     sums
 }
 
+/// The robust per-pixel residual: mean absolute error over the channels, capped at `cap`.
 fn pixel_residuals(rendered: &[f32], target: &[f32], cap: f32) -> Vec<f32> {
     rendered
         .chunks_exact(3)

@@ -625,9 +625,8 @@ impl NodeTracker {
         if views.is_empty() {
             return true;
         }
-        let bg = Vec3::from(self.config.eval_background);
         let cap = self.config.track.validation_residual_cap;
-        let targets: Vec<Vec<f32>> = views.iter().map(|v| v.target(bg)).collect();
+        let targets = self.targets(&views);
         let along_tracked = self.best_screw_renders(tracked, p, &views, &targets);
         let along_searched = self.best_screw_renders(searched, p, &views, &targets);
         let (tracked_sum, searched_sum) = residuals_where_changed(&along_tracked, &along_searched, &targets, cap);
@@ -959,15 +958,14 @@ mod tests {
                 .fold((Vec3::ZERO, 0), |(s, c), k| (s + tracker.node_centres[k], c + 1));
             sum / count as f32
         };
-        let turn = |angle: f32, pivot: Vec3, c: Vec3| {
-            let rotation = Quat::from_rotation_y(angle);
-            NodePose { rotation, translation: rotation * (c - pivot) + pivot - c }
-        };
         let (door, strip) = (centre(1), centre(2));
         let poses = vec![
             vec![NodePose::IDENTITY; 2],
             vec![NodePose::IDENTITY; 2],
-            vec![turn(-std::f32::consts::FRAC_PI_2, Vec3::ZERO, door), turn(1.0, Vec3::new(-0.3, 0.0, 0.0), strip)],
+            vec![
+                turn_about(-std::f32::consts::FRAC_PI_2, Vec3::ZERO, door),
+                turn_about(1.0, Vec3::new(-0.3, 0.0, 0.0), strip),
+            ],
         ];
         let door_nodes = node_part.iter().filter(|&&l| l == 1).count();
         tracker.set_articulation(TrackedParts { node_part, centres: vec![door, strip], poses });
