@@ -72,6 +72,7 @@ impl NodeTracker {
             node_part: vec![0; self.node_centres.len()],
             centres: Vec::new(),
             poses: vec![Vec::new(); self.knots.len()],
+            found_on_end_state: Vec::new(),
         });
         self.set_articulation(parts);
         let views = evenly_spread(&end_views.iter().collect::<Vec<_>>(), VIEWS);
@@ -277,6 +278,8 @@ impl NodeTracker {
         nodes.iter().for_each(|&k| parts.node_part[k] = p + 1);
         parts.centres.push(self.labelled_centroid(&parts.node_part, p + 1));
         parts.poses.iter_mut().for_each(|k| k.push(NodePose::IDENTITY));
+        parts.found_on_end_state.resize(p, false);
+        parts.found_on_end_state.push(true);
         parts
     }
 
@@ -900,6 +903,7 @@ mod tests {
             node_part: vec![0; n],
             centres: Vec::new(),
             poses: vec![Vec::new(); 3],
+            found_on_end_state: Vec::new(),
         });
         let node_of = |door: &[usize]| -> Vec<bool> {
             let mut on = vec![false; n];
@@ -968,7 +972,12 @@ mod tests {
             ],
         ];
         let door_nodes = node_part.iter().filter(|&&l| l == 1).count();
-        tracker.set_articulation(TrackedParts { node_part, centres: vec![door, strip], poses });
+        tracker.set_articulation(TrackedParts {
+            node_part,
+            centres: vec![door, strip],
+            poses,
+            found_on_end_state: Vec::new(),
+        });
         let strip_nodes: Vec<bool> =
             tracker.articulation.as_ref().expect("set").node_part.iter().map(|&l| l == 2).collect();
         let returned = tracker.drop_parts_that_look_wrong(&views_of(&end, 1.0, 16));
@@ -989,7 +998,7 @@ mod tests {
             .map(|(pose, &c)| NodePose::from_rigid(&screw_fraction(&pose.to_rigid(c), 0.5), c))
             .collect();
         let poses = vec![vec![NodePose::IDENTITY; end.len()], halfway, end.to_vec()];
-        TrackedParts { node_part: node_part.to_vec(), centres, poses }
+        TrackedParts { node_part: node_part.to_vec(), centres, poses, found_on_end_state: Vec::new() }
     }
 
     /// A turn by `angle` about the y axis through `pivot`, as a pose about `c`.
