@@ -1326,8 +1326,9 @@ impl NodeTracker {
         check
     }
 
-    /// Fit each part's pose at the last knot again on `end_views` (the end state,
-    /// time 1) for `track.end_iterations` iterations, the parts rigid. Returns the
+    /// Fit each tracked part's pose at the last knot again on `end_views` (the end
+    /// state, time 1) for `track.end_iterations` iterations, the parts rigid (parts
+    /// found on the end state hold theirs: `refit_end_poses_and`). Returns the
     /// photometric loss over the last tenth of the iterations (None when there is
     /// nothing to refit).
     pub fn refit_end_poses(&mut self, end_views: &[TrainView]) -> Option<f32> {
@@ -1495,8 +1496,9 @@ impl NodeTracker {
 
     /// Global search of each part's end pose on `end_views` (`track.search_step`);
     /// returns the parts whose end pose a searched one replaced. Every part's turn
-    /// starts with a refit of all end poses (the baseline its candidates are
-    /// refitted against), so the end poses are refitted even when it returns 0.
+    /// starts with a refit of the tracked parts' end poses and its own (the
+    /// baseline its candidates are refitted against), so the end poses are
+    /// refitted even when it returns 0.
     pub fn search_end_poses(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
         let parts = self.articulation.as_ref().map_or(0, |a| a.centres.len());
         let mut changed = 0;

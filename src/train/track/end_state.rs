@@ -578,8 +578,7 @@ impl NodeTracker {
     fn fit_path(&mut self, p: usize, frames: &[TrainView]) {
         let mut parts = self.articulation.clone().expect("a part to fit");
         let last = parts.poses.len() - 1;
-        let c = parts.centres[p];
-        let end = parts.poses[last][p].to_rigid(c);
+        let steps = screw_steps(&parts, p);
         for k in 1..last {
             let t = self.knot_time(k);
             let Some(frame) = frames
@@ -593,8 +592,7 @@ impl NodeTracker {
             let mut at_knot = frame.clone();
             at_knot.time = Some(t);
             let mut best = (f32::INFINITY, NodePose::IDENTITY);
-            for s in 0..=PATH_STEPS {
-                let pose = NodePose::from_rigid(&screw_fraction(&end, s as f64 / PATH_STEPS as f64), c);
+            for &pose in &steps {
                 parts.poses[k][p] = pose;
                 let loss = self.articulated_loss(&parts, &parts.node_part, &[&at_knot]);
                 if loss < best.0 {
@@ -654,13 +652,9 @@ impl NodeTracker {
         views: &[&TrainView],
         targets: &[Vec<f32>],
     ) -> Vec<Vec<f32>> {
-        let last = parts.poses.len() - 1;
-        let c = parts.centres[p];
-        let end = parts.poses[last][p].to_rigid(c);
         let cap = self.config.track.validation_residual_cap;
         let mut best: Vec<(f32, Vec<f32>)> = vec![(f32::INFINITY, Vec::new()); views.len()];
-        for s in 0..=PATH_STEPS {
-            let pose = NodePose::from_rigid(&screw_fraction(&end, s as f64 / PATH_STEPS as f64), c);
+        for pose in screw_steps(parts, p) {
             let mut held = parts.clone();
             held.poses.iter_mut().for_each(|k| k[p] = pose);
             let renders = self.articulated_renders(&held, &held.node_part, views);
@@ -722,6 +716,14 @@ fn largest_connected(graph: &[Vec<usize>], members: &[usize]) -> Vec<usize> {
 /// times the median of `sorted` (the seen base nodes' residuals, ascending).
 fn residual_threshold(sorted: &[f32]) -> f32 {
     MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 2])
+}
+
+/// Part `p`'s poses (about its centre) at each tenth (`PATH_STEPS`) of the
+/// screw motion from rest to its end pose in `parts`, rest first.
+fn screw_steps(parts: &TrackedParts, p: usize) -> Vec<NodePose> {
+    let c = parts.centres[p];
+    let end = parts.poses[parts.poses.len() - 1][p].to_rigid(c);
+    (0..=PATH_STEPS).map(|s| NodePose::from_rigid(&screw_fraction(&end, s as f64 / PATH_STEPS as f64), c)).collect()
 }
 
 /// The rigid motion a fraction `f` of the way along the screw motion from rest to `m`.
