@@ -235,6 +235,14 @@ fn node_tracking_recovers_a_revolute_door() {
     assert!(door.axis_angle_deg < 2.0, "axis {} deg off", door.axis_angle_deg);
     assert!(door.axis_position.expect("revolute") < 0.2, "pivot {:?} (0.1 m) off", door.axis_position);
     assert!(door.part_motion < 3.0, "motion {} deg off", door.part_motion);
+    // What the base and the part are made of: mostly the body and the door.
+    let composition = metrics.composition.expect("the dataset has ground truth");
+    assert_eq!(composition.len(), 2);
+    for (part, c) in composition.iter().enumerate() {
+        let total: usize = c.gt_parts.iter().map(|g| g.1).sum();
+        let (gt, most) = c.gt_parts[0];
+        assert!(gt == part && 2 * most > total, "part {part}: {:?}", c.gt_parts);
+    }
     twin_renders_the_end_state(&data, &root.join("d"), &root);
 }
 

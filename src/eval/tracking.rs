@@ -89,6 +89,37 @@ pub fn tracking_errors(
         .collect()
 }
 
+/// One predicted part's make-up against ground truth: how many of its start-state
+/// Gaussians lie nearest each ground-truth part (`gt_labels`). Joint errors say
+/// a part moves wrongly; this says what the part is made of (a door found as a
+/// fifth of its panel, a drawer holding pieces of three doors).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PartComposition {
+    /// 0 is the static base.
+    pub part: usize,
+    /// (ground-truth part, Gaussians), largest first.
+    pub gt_parts: Vec<(usize, usize)>,
+}
+
+/// The make-up of each predicted part: `sets[0]` is the static base, `sets[k]`
+/// part k, each the start-state centres of its Gaussians.
+pub fn part_composition(gt: &GroundTruth, sets: &[Vec<Vec3>], seed: u64) -> Vec<PartComposition> {
+    sets.iter()
+        .enumerate()
+        .map(|(part, points)| {
+            let mut counts: Vec<(usize, usize)> = Vec::new();
+            for label in gt_labels(gt, points, seed) {
+                match counts.iter_mut().find(|(id, _)| *id == label) {
+                    Some((_, n)) => *n += 1,
+                    None => counts.push((label, 1)),
+                }
+            }
+            counts.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+            PartComposition { part, gt_parts: counts }
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -138,5 +169,23 @@ mod tests {
         assert!((lid(1).p90 - 0.5).abs() < 1e-6, "{:?}", lid(1));
         assert!((lid(0).p90 - 0.25).abs() < 1e-6, "{:?}", lid(0));
         assert!(e[1].parts.iter().find(|p| p.gt_part == 0).unwrap().median < 1e-9);
+    }
+
+    /// A predicted part holding two lid points and one base point, and a base of one
+    /// base point: each part's count per ground-truth part, largest first.
+    #[test]
+    fn a_part_is_counted_by_the_ground_truth_parts_its_points_lie_on() {
+        let gt = GroundTruth {
+            joints: JointsFile { object: "test".into(), joints: Vec::new(), parts: Vec::new() },
+            meshes: vec![
+                (0, cube(Vec3::ZERO, Vec3::ONE)),
+                (1, cube(Vec3::new(0.0, 0.0, 2.0), Vec3::new(1.0, 1.0, 2.2))),
+            ],
+        };
+        let base = vec![Vec3::new(0.5, 0.5, 0.0)];
+        let part = vec![Vec3::new(0.5, 0.5, 2.2), Vec3::new(0.5, 0.5, 1.0), Vec3::new(0.2, 0.8, 2.0)];
+        let c = part_composition(&gt, &[base, part], 1);
+        assert_eq!(c[0], PartComposition { part: 0, gt_parts: vec![(0, 1)] });
+        assert_eq!(c[1], PartComposition { part: 1, gt_parts: vec![(1, 2), (0, 1)] });
     }
 }

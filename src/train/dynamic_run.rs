@@ -19,7 +19,7 @@ use super::track::{NodePose, NodeTracker};
 use super::views::load_phase_views;
 use super::views::TrainView;
 use crate::error::{write_atomic, Error, Result};
-use crate::eval::tracking::{tracking_errors, TrackingError};
+use crate::eval::tracking::{part_composition, tracking_errors, PartComposition, TrackingError};
 use crate::eval::twin::GroundTruth;
 use crate::eval::{match_joints, ArticulationReport, PredictedJoint};
 use crate::export::{write_twin, TwinPart};
@@ -83,6 +83,10 @@ pub struct DynamicMetrics {
     /// `discovery_time`): how well each part was followed before grouping.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tracking_error_at_discovery: Option<Vec<TrackingError>>,
+    /// With ground truth: what each part (0 = the static base) is made of, its
+    /// start-state Gaussians counted by the ground-truth part they lie on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub composition: Option<Vec<PartComposition>>,
 }
 
 /// How a stage II run ended.
@@ -523,6 +527,23 @@ fn finish(
         viz.gaussians(&format!("stage3/part_{}", k + 1), g);
     }
     viz.flush();
+    // A diagnostic: ground truth without its meshes leaves it out rather than losing the run.
+    let composition = match run.ground_truth.map(GroundTruth::load) {
+        Some(Ok(gt)) => {
+            let sets: Vec<Vec<glam::Vec3>> =
+                std::iter::once(base).chain(part_sets).map(|g| (0..g.len()).map(|i| g.mean(i)).collect()).collect();
+            let composition = part_composition(&gt, &sets, 0);
+            for c in &composition {
+                tracing::info!(part = c.part, gt_parts = ?c.gt_parts, "stage III: a part's make-up (Gaussians per ground-truth part)");
+            }
+            Some(composition)
+        }
+        Some(Err(e)) => {
+            tracing::warn!("the parts' make-up against ground truth is left out: {e}");
+            None
+        }
+        None => None,
+    };
     let gt_path = run.ground_truth.map(|d| d.join("gt").join("joints.json"));
     let gt_report = if let Some(gt_path) = gt_path {
         let gt: Vec<_> =
@@ -556,6 +577,7 @@ fn finish(
         gt_report,
         tracking_error: summary.tracking_error,
         tracking_error_at_discovery: summary.tracking_error_at_discovery,
+        composition,
     };
     let json = serde_json::to_vec_pretty(&metrics).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&run.out.join("metrics.json"), &json)?;
