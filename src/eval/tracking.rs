@@ -104,11 +104,14 @@ pub struct PartComposition {
 /// The make-up of each predicted part: `sets[0]` is the static base, `sets[k]`
 /// part k, each the start-state centres of its Gaussians.
 pub fn part_composition(gt: &GroundTruth, sets: &[Vec<Vec3>], seed: u64) -> Vec<PartComposition> {
+    // One labelling of all the points: the meshes are sampled and indexed once.
+    let all: Vec<Vec3> = sets.iter().flatten().copied().collect();
+    let mut labels = gt_labels(gt, &all, seed).into_iter();
     sets.iter()
         .enumerate()
         .map(|(part, points)| {
             let mut counts: Vec<(usize, usize)> = Vec::new();
-            for label in gt_labels(gt, points, seed) {
+            for label in labels.by_ref().take(points.len()) {
                 match counts.iter_mut().find(|(id, _)| *id == label) {
                     Some((_, n)) => *n += 1,
                     None => counts.push((label, 1)),
