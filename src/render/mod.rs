@@ -15,6 +15,7 @@ use rayon::prelude::*;
 use crate::camera::Camera;
 use crate::splat::GaussianSet;
 
+pub mod gpu;
 pub mod lanes;
 pub mod project;
 pub mod raster;
@@ -95,7 +96,7 @@ pub struct Gradients {
     pub visible: Vec<bool>,
 }
 
-fn active_degree(gs: &GaussianSet, opts: &RenderOptions) -> u32 {
+pub(crate) fn active_degree(gs: &GaussianSet, opts: &RenderOptions) -> u32 {
     opts.sh_degree.map_or(gs.sh_degree, |d| d.min(gs.sh_degree))
 }
 

@@ -90,6 +90,11 @@ impl ProjectionCamera {
         self
     }
 
+    /// The tan(angle) limits (x, y) of the projection Jacobian.
+    pub fn limits(&self) -> (f32, f32) {
+        (self.lim_x, self.lim_y)
+    }
+
     /// The projection Jacobian at camera point `t`, and whether x / y were clamped.
     fn jacobian(&self, t: Vec3) -> (Mat3, bool, bool) {
         let rz = 1.0 / t.z;

@@ -1,0 +1,649 @@
+//! The GPU backend: the CPU backend's rasterizer, forward and backward, as WGSL
+//! compute kernels (shaders/) run through wgpu on Vulkan, Metal or DX12.
+//!
+//! One render is a fixed chain of kernels, in the shape of brush and gsplat:
+//! project every Gaussian (`project.wgsl`), radix-sort the visible ones by depth
+//! (`sort.wgsl`, `scan.wgsl`), emit one (tile, depth rank) pair per tile each
+//! touches and sort those stably by tile (`bin.wgsl`), find each tile's range
+//! (`tile_ranges.wgsl`), then composite one workgroup per 16x16 tile
+//! (`rasterize.wgsl`). The backward pass walks each tile's list back to front
+//! (`rasterize_backward.wgsl`) and then backs the projection up to the raw
+//! parameters (`project_backward.wgsl`). The numeric rules (culling, the 0.3 px^2
+//! dilation, alpha thresholds, the exp polynomial) are the CPU backend's, so the
+//! two agree to float rounding; the per-Gaussian gradient sums over tiles are
+//! float atomics, so their last bits depend on the GPU's scheduling.
+
+use std::sync::Arc;
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use wgpu::util::DeviceExt;
+
+use super::project::ProjectionCamera;
+use super::raster::{RasterOutput, TILE};
+use super::{active_degree, crop, Gradients, RenderOptions};
+use crate::camera::Camera;
+use crate::splat::{GaussianSet, ParamGroup};
+
+/// Threads per workgroup of the 1D kernels (and elements per sort or scan block).
+const GROUP: u32 = 256;
+/// Most workgroups one dispatch dimension may hold (WebGPU's limit).
+const MAX_GROUPS_PER_DIM: u32 = 65_535;
+/// Floats per projected Gaussian and per projected-gradient record (common.wgsl).
+const SPLAT_STRIDE: u64 = 10;
+const GRAD_STRIDE: usize = 10;
+
+/// Why no GPU backend could be made.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error("no GPU adapter found (wgpu found {0}); install a Vulkan driver (e.g. mesa-vulkan-drivers) or use --backend cpu")]
+    NoAdapter(String),
+    #[error("the GPU adapter {adapter} refused a device: {message}")]
+    Device { adapter: String, message: String },
+}
+
+/// Which adapters a [`GpuContext`] may use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AdapterKind {
+    /// Any adapter, software rasterizers (lavapipe) included.
+    Any,
+    /// A hardware GPU only (discrete, integrated or virtual).
+    Hardware,
+}
+
+/// A GPU device with the rasterizer's kernels compiled for it.
+pub struct GpuContext {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    info: wgpu::AdapterInfo,
+    kernels: Kernels,
+}
+
+struct Kernels {
+    project: wgpu::ComputePipeline,
+    count_digits: wgpu::ComputePipeline,
+    scatter: wgpu::ComputePipeline,
+    scan_blocks: wgpu::ComputePipeline,
+    add_block_offsets: wgpu::ComputePipeline,
+    counts_by_rank: wgpu::ComputePipeline,
+    emit_intersections: wgpu::ComputePipeline,
+    tile_ranges: wgpu::ComputePipeline,
+    rasterize: wgpu::ComputePipeline,
+    rasterize_backward: wgpu::ComputePipeline,
+    project_backward: wgpu::ComputePipeline,
+}
+
+/// The per-render uniforms (`Frame` in common.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct FrameUniform {
+    rotation: [[f32; 4]; 3],
+    translation: [f32; 4],
+    position: [f32; 4],
+    intrinsics: [f32; 4],
+    limits: [f32; 4],
+    background: [f32; 4],
+    image: [u32; 4],
+    sizes: [u32; 4],
+    offsets: [u32; 4],
+    offsets2: [u32; 4],
+}
+
+/// The sizes of one sort, scan or range pass (`Pass` in common.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct PassUniform {
+    count: u32,
+    shift: u32,
+    blocks: u32,
+    unused: u32,
+}
+
+/// A view rendered on the GPU: its images (read back) and the device buffers
+/// its backward pass reuses.
+pub struct GpuRender {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major RGB (background included), alpha, accumulated depth, final
+    /// transmittance and last composited list position, as the CPU backend's.
+    pub image: RasterOutput,
+    /// Gaussian-tile pairs rendered (the work measure of binning).
+    pub intersections: u32,
+    gaussian_count: usize,
+    background: BackgroundPixels,
+    frame: wgpu::Buffer,
+    params: wgpu::Buffer,
+    splats: wgpu::Buffer,
+    tile_counts: wgpu::Buffer,
+    depth_order: wgpu::Buffer,
+    tile_values: wgpu::Buffer,
+    ranges: wgpu::Buffer,
+    state: wgpu::Buffer,
+}
+
+/// The background a render composited over, kept for the backward pass.
+#[derive(Clone)]
+enum BackgroundPixels {
+    Uniform(Vec3),
+    Image(Arc<[f32]>),
+}
+
+impl BackgroundPixels {
+    fn at(&self, pixel: usize) -> Vec3 {
+        match self {
+            BackgroundPixels::Uniform(c) => *c,
+            BackgroundPixels::Image(img) => Vec3::from_slice(&img[3 * pixel..3 * pixel + 3]),
+        }
+    }
+}
+
+impl GpuContext {
+    /// Open the best adapter of `kind` (discrete before integrated before
+    /// virtual before software) and compile the kernels for it.
+    pub fn new(kind: AdapterKind) -> Result<Self, GpuError> {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        let found: Vec<String> =
+            adapters.iter().map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type)).collect();
+        let rank = |t: wgpu::DeviceType| match t {
+            wgpu::DeviceType::DiscreteGpu => Some(0),
+            wgpu::DeviceType::IntegratedGpu => Some(1),
+            wgpu::DeviceType::VirtualGpu => Some(2),
+            wgpu::DeviceType::Cpu | wgpu::DeviceType::Other => (kind == AdapterKind::Any).then_some(3),
+        };
+        let adapter = adapters
+            .into_iter()
+            .filter_map(|a| rank(a.get_info().device_type).map(|r| (r, a)))
+            .min_by_key(|(r, _)| *r)
+            .map(|(_, a)| a)
+            .ok_or_else(|| GpuError::NoAdapter(if found.is_empty() { "none".into() } else { found.join(", ") }))?;
+        let info = adapter.get_info();
+        // The adapter's own limits: big scenes need storage buffers beyond WebGPU's defaults.
+        let descriptor =
+            wgpu::DeviceDescriptor { label: Some("aim"), required_limits: adapter.limits(), ..Default::default() };
+        let (device, queue) = pollster::block_on(adapter.request_device(&descriptor))
+            .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
+        let kernels = Kernels::compile(&device);
+        Ok(Self { device, queue, info, kernels })
+    }
+
+    /// The adapter in words: name, type and API.
+    pub fn describe(&self) -> String {
+        format!("{} ({:?}, {:?})", self.info.name, self.info.device_type, self.info.backend)
+    }
+
+    /// Render `gs` from `camera` (as [`super::render`]).
+    pub fn render(&self, gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> GpuRender {
+        self.render_region(gs, camera, [0, 0, camera.width(), camera.height()], options)
+    }
+
+    /// Render the pixels `region` = [x0, y0, x1, y1) of `camera`'s image (as
+    /// [`super::render_region`]).
+    pub fn render_region(
+        &self,
+        gs: &GaussianSet,
+        camera: &Camera,
+        region: [u32; 4],
+        options: &RenderOptions,
+    ) -> GpuRender {
+        let [x0, y0, x1, y1] = region;
+        assert!(
+            x0 < x1 && y0 < y1 && x1 <= camera.width() && y1 <= camera.height(),
+            "region {region:?} outside the {}x{} image",
+            camera.width(),
+            camera.height()
+        );
+        let (width, height) = (x1 - x0, y1 - y0);
+        let (tiles_x, tiles_y) = (width.div_ceil(TILE), height.div_ceil(TILE));
+        let n = gs.len();
+        let count = u32::try_from(n).expect("at most 2^32 Gaussians");
+        let sh_degree = active_degree(gs, options);
+        let background = match &options.background_image {
+            Some(img) => {
+                assert_eq!(
+                    img.len(),
+                    3 * (camera.width() * camera.height()) as usize,
+                    "background image must match the camera"
+                );
+                BackgroundPixels::Image(if region == [0, 0, camera.width(), camera.height()] {
+                    img.clone()
+                } else {
+                    crop(img, camera.width(), 3, region).into()
+                })
+            }
+            None => BackgroundPixels::Uniform(options.background),
+        };
+        let projection = ProjectionCamera::new(camera).region(region);
+        let uniform = frame_uniform(gs, &projection, sh_degree, options.background, &background, [tiles_x, tiles_y]);
+        let frame = self.uniform(&uniform);
+        let params = self.storage_init("params", bytemuck::cast_slice(&param_buffer(gs)));
+
+        // Project, sort by depth, and count each rank's tiles.
+        let mut enc = self.encoder();
+        let splats = self.storage("splats", SPLAT_STRIDE * 4 * n as u64);
+        let tile_spans = self.storage("tile spans", 16 * n as u64);
+        let tile_counts = self.storage("tile counts", 4 * n as u64);
+        let depth_keys = self.storage("depth keys", 4 * n as u64);
+        let depth_values = self.storage("depth order", 4 * n as u64);
+        self.dispatch_1d(
+            &mut enc,
+            &self.kernels.project,
+            &[&frame, &params, &splats, &tile_spans, &tile_counts, &depth_keys, &depth_values],
+            count,
+        );
+        let (_, depth_order) = self.sort_pairs(&mut enc, depth_keys, depth_values, count, 32);
+        // One slot more than there are Gaussians: after the scan it holds the total.
+        let rank_offsets = self.storage("rank offsets", 4 * (n as u64 + 1));
+        self.dispatch_bound(
+            &mut enc,
+            &self.kernels.counts_by_rank,
+            &[(0, &frame), (1, &depth_order), (2, &tile_counts), (3, &rank_offsets)],
+            groups_1d(count),
+        );
+        self.scan(&mut enc, &rank_offsets, count + 1);
+        let total = self.read_u32s(enc, &[(&rank_offsets, n as u64, 1)]).remove(0)[0];
+
+        // Intersections sorted by tile, each tile's range, compositing.
+        let mut enc = self.encoder();
+        let tile_keys = self.storage("tile keys", 4 * total as u64);
+        let tile_values = self.storage("tile values", 4 * total as u64);
+        self.dispatch_bound(
+            &mut enc,
+            &self.kernels.emit_intersections,
+            &[(0, &frame), (1, &depth_order), (3, &rank_offsets), (4, &tile_spans), (5, &tile_keys), (6, &tile_values)],
+            groups_1d(count),
+        );
+        let tiles = tiles_x * tiles_y;
+        let tile_bits = u32::BITS - (tiles - 1).leading_zeros();
+        let (tile_keys, tile_values) = self.sort_pairs(&mut enc, tile_keys, tile_values, total, tile_bits);
+        let ranges = self.storage("tile ranges", 8 * tiles as u64);
+        let pass = self.uniform(&PassUniform { count: total, shift: 0, blocks: 0, unused: 0 });
+        self.dispatch_bound(
+            &mut enc,
+            &self.kernels.tile_ranges,
+            &[(0, &pass), (1, &tile_keys), (2, &ranges)],
+            groups_1d(total),
+        );
+        let pixels = (width * height) as u64;
+        let background_image = match &background {
+            BackgroundPixels::Image(img) => self.storage_init("background", bytemuck::cast_slice(img)),
+            BackgroundPixels::Uniform(_) => self.storage("background", 4),
+        };
+        let color = self.storage("colour", 12 * pixels);
+        let state = self.storage("pixel state", 16 * pixels);
+        self.dispatch_bound(
+            &mut enc,
+            &self.kernels.rasterize,
+            &[
+                (0, &frame),
+                (1, &splats),
+                (2, &depth_order),
+                (3, &tile_values),
+                (4, &ranges),
+                (5, &background_image),
+                (6, &color),
+                (7, &state),
+            ],
+            (tiles_x, tiles_y),
+        );
+        let mut out = self.read_f32s(enc, &[(&color, 0, 3 * pixels), (&state, 0, 4 * pixels)]);
+        let state_values = out.pop().expect("two buffers read");
+        let color_values = out.pop().expect("two buffers read");
+        let mut image = RasterOutput { color: color_values, ..Default::default() };
+        for s in state_values.chunks_exact(4) {
+            image.alpha.push(s[0]);
+            image.depth.push(s[1]);
+            image.final_t.push(s[2]);
+            image.last.push(s[3] as u32);
+        }
+        GpuRender {
+            width,
+            height,
+            image,
+            intersections: total,
+            gaussian_count: n,
+            background,
+            frame,
+            params,
+            splats,
+            tile_counts,
+            depth_order,
+            tile_values,
+            ranges,
+            state,
+        }
+    }
+
+    /// Backward pass of `fwd` (a render of `gs`): as [`super::backward`].
+    pub fn backward(
+        &self,
+        gs: &GaussianSet,
+        fwd: &GpuRender,
+        grad_color: &[f32],
+        grad_alpha: Option<&[f32]>,
+        grad_depth: Option<&[f32]>,
+    ) -> Gradients {
+        let n = gs.len();
+        assert_eq!(n, fwd.gaussian_count, "the backward pass needs the rendered Gaussian set");
+        let pixels = (fwd.width * fwd.height) as usize;
+        assert_eq!(grad_color.len(), 3 * pixels, "colour gradient must match the image");
+        // Per pixel what the kernel reads, and the background's gradient, which is
+        // the colour gradient times the final transmittance.
+        let mut pixel_grads = Vec::with_capacity(6 * pixels);
+        let mut background = Vec3::ZERO;
+        for o in 0..pixels {
+            let tf = fwd.image.final_t[o];
+            let gc = Vec3::from_slice(&grad_color[3 * o..3 * o + 3]);
+            pixel_grads.extend_from_slice(&gc.to_array());
+            pixel_grads.push(grad_alpha.map_or(0.0, |a| a[o]) * tf);
+            pixel_grads.push(grad_depth.map_or(0.0, |d| d[o]));
+            pixel_grads.push(gc.dot(fwd.background.at(o)) * tf);
+            background += gc * tf;
+        }
+        let pixel_grads = self.storage_init("pixel gradients", bytemuck::cast_slice(&pixel_grads));
+        let projected_grads = self.storage("projected gradients", (4 * GRAD_STRIDE * n) as u64);
+        let mut enc = self.encoder();
+        let (tiles_x, tiles_y) = (fwd.width.div_ceil(TILE), fwd.height.div_ceil(TILE));
+        self.dispatch_bound(
+            &mut enc,
+            &self.kernels.rasterize_backward,
+            &[
+                (0, &fwd.frame),
+                (1, &fwd.splats),
+                (2, &fwd.depth_order),
+                (3, &fwd.tile_values),
+                (4, &fwd.ranges),
+                (5, &fwd.state),
+                (6, &pixel_grads),
+                (7, &projected_grads),
+            ],
+            (tiles_x, tiles_y),
+        );
+        let param_floats = fwd.params.size() / 4;
+        let param_grads = self.storage("parameter gradients", 4 * param_floats);
+        let norms = self.storage("mean2d gradient norms", 8 * n as u64);
+        self.dispatch_1d(
+            &mut enc,
+            &self.kernels.project_backward,
+            &[&fwd.frame, &fwd.params, &fwd.splats, &fwd.tile_counts, &projected_grads, &param_grads, &norms],
+            n as u32,
+        );
+        let mut out = self.read_f32s(enc, &[(&param_grads, 0, param_floats), (&norms, 0, 2 * n as u64)]);
+        let norm_values = out.pop().expect("two buffers read");
+        let flat = out.pop().expect("two buffers read");
+        let mut params = GaussianSet::new(gs.sh_degree);
+        let mut rest: &[f32] = &flat;
+        for group in ParamGroup::ALL {
+            let len = gs.width(group) * n;
+            *params.group_mut(group) = rest[..len].to_vec();
+            rest = &rest[len..];
+        }
+        let (mean2d_grad_norm, visible) = norm_values.chunks_exact(2).map(|v| (v[0], v[1] > 0.5)).unzip();
+        Gradients { params, background, mean2d_grad_norm, visible }
+    }
+
+    fn encoder(&self) -> wgpu::CommandEncoder {
+        self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None })
+    }
+
+    fn uniform<T: Pod>(&self, value: &T) -> wgpu::Buffer {
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: None,
+            contents: bytemuck::bytes_of(value),
+            usage: wgpu::BufferUsages::UNIFORM,
+        })
+    }
+
+    /// A zeroed storage buffer of `bytes` (at least one word: bindings cannot be empty).
+    fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes.max(4).next_multiple_of(4),
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
+    fn storage_init(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {
+        if contents.is_empty() {
+            return self.storage(label, 4);
+        }
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        })
+    }
+
+    /// Dispatch a 1D kernel over `count` threads whose bindings are 0, 1, 2, ... in order.
+    fn dispatch_1d(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        kernel: &wgpu::ComputePipeline,
+        buffers: &[&wgpu::Buffer],
+        count: u32,
+    ) {
+        let bound: Vec<(u32, &wgpu::Buffer)> = buffers.iter().enumerate().map(|(i, b)| (i as u32, *b)).collect();
+        self.dispatch_bound(enc, kernel, &bound, groups_1d(count));
+    }
+
+    fn dispatch_bound(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        kernel: &wgpu::ComputePipeline,
+        buffers: &[(u32, &wgpu::Buffer)],
+        groups: (u32, u32),
+    ) {
+        if groups.0 == 0 || groups.1 == 0 {
+            return;
+        }
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry { binding: *binding, resource: buffer.as_entire_binding() })
+            .collect();
+        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &kernel.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: None, timestamp_writes: None });
+        pass.set_pipeline(kernel);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups(groups.0, groups.1, 1);
+    }
+
+    /// Stable sort of `count` (key, value) pairs on the low `bits` bits of the
+    /// keys, 8 bits a pass; returns the buffers holding the sorted pairs.
+    fn sort_pairs(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        keys: wgpu::Buffer,
+        values: wgpu::Buffer,
+        count: u32,
+        bits: u32,
+    ) -> (wgpu::Buffer, wgpu::Buffer) {
+        let blocks = count.div_ceil(GROUP);
+        let block_counts = self.storage("digit counts", 4 * 256 * blocks as u64);
+        let mut from = (keys, values);
+        let mut to = (self.storage("sort keys", 4 * count as u64), self.storage("sort values", 4 * count as u64));
+        for shift in (0..bits).step_by(8) {
+            let pass = self.uniform(&PassUniform { count, shift, blocks, unused: 0 });
+            self.dispatch_bound(
+                enc,
+                &self.kernels.count_digits,
+                &[(0, &pass), (1, &from.0), (3, &block_counts)],
+                groups_1d(count),
+            );
+            self.scan(enc, &block_counts, 256 * blocks);
+            self.dispatch_bound(
+                enc,
+                &self.kernels.scatter,
+                &[(0, &pass), (1, &from.0), (2, &from.1), (3, &block_counts), (4, &to.0), (5, &to.1)],
+                groups_1d(count),
+            );
+            std::mem::swap(&mut from, &mut to);
+        }
+        from
+    }
+
+    /// Exclusive prefix sum of the first `count` u32s of `data`, in place.
+    fn scan(&self, enc: &mut wgpu::CommandEncoder, data: &wgpu::Buffer, count: u32) {
+        let blocks = count.div_ceil(GROUP);
+        let sums = self.storage("block sums", 4 * blocks as u64);
+        let pass = self.uniform(&PassUniform { count, shift: 0, blocks, unused: 0 });
+        self.dispatch_bound(enc, &self.kernels.scan_blocks, &[(0, &pass), (1, data), (2, &sums)], groups_1d(count));
+        if blocks > 1 {
+            self.scan(enc, &sums, blocks);
+            self.dispatch_bound(
+                enc,
+                &self.kernels.add_block_offsets,
+                &[(0, &pass), (1, data), (2, &sums)],
+                groups_1d(count),
+            );
+        }
+    }
+
+    /// Submit `enc` after copying (buffer, first word, words) ranges out, and
+    /// read them back.
+    fn read_words(&self, mut enc: wgpu::CommandEncoder, ranges: &[(&wgpu::Buffer, u64, u64)]) -> Vec<Vec<u8>> {
+        let staging: Vec<wgpu::Buffer> = ranges
+            .iter()
+            .map(|&(buffer, first, words)| {
+                let size = (4 * words).max(4);
+                let s = self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("read back"),
+                    size,
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                });
+                if words > 0 {
+                    enc.copy_buffer_to_buffer(buffer, 4 * first, &s, 0, 4 * words);
+                }
+                s
+            })
+            .collect();
+        self.queue.submit([enc.finish()]);
+        for s in &staging {
+            s.slice(..).map_async(wgpu::MapMode::Read, |r| r.expect("mapping a read-back buffer"));
+        }
+        self.device.poll(wgpu::PollType::wait_indefinitely()).expect("waiting for the GPU");
+        staging
+            .iter()
+            .zip(ranges)
+            .map(|(s, &(_, _, words))| {
+                let bytes =
+                    s.slice(..).get_mapped_range().expect("mapped read-back buffer")[..4 * words as usize].to_vec();
+                s.unmap();
+                bytes
+            })
+            .collect()
+    }
+
+    fn read_u32s(&self, enc: wgpu::CommandEncoder, ranges: &[(&wgpu::Buffer, u64, u64)]) -> Vec<Vec<u32>> {
+        self.read_words(enc, ranges).into_iter().map(|b| bytemuck::cast_slice(&b).to_vec()).collect()
+    }
+
+    fn read_f32s(&self, enc: wgpu::CommandEncoder, ranges: &[(&wgpu::Buffer, u64, u64)]) -> Vec<Vec<f32>> {
+        self.read_words(enc, ranges).into_iter().map(|b| bytemuck::cast_slice(&b).to_vec()).collect()
+    }
+}
+
+/// Workgroups for `count` threads of a 256-wide 1D kernel, as a 2D grid.
+fn groups_1d(count: u32) -> (u32, u32) {
+    let blocks = count.div_ceil(GROUP);
+    if blocks == 0 {
+        return (0, 0);
+    }
+    let x = blocks.min(MAX_GROUPS_PER_DIM);
+    (x, blocks.div_ceil(x))
+}
+
+/// The set's parameter groups one after another, in [`ParamGroup::ALL`] order.
+fn param_buffer(gs: &GaussianSet) -> Vec<f32> {
+    let mut flat = Vec::with_capacity(ParamGroup::ALL.iter().map(|g| gs.group(*g).len()).sum());
+    for group in ParamGroup::ALL {
+        flat.extend_from_slice(gs.group(group));
+    }
+    flat
+}
+
+fn frame_uniform(
+    gs: &GaussianSet,
+    cam: &ProjectionCamera,
+    sh_degree: u32,
+    background: Vec3,
+    pixels: &BackgroundPixels,
+    [tiles_x, tiles_y]: [u32; 2],
+) -> FrameUniform {
+    let n = gs.len();
+    let mut offsets = [0u32; 6];
+    let mut at = 0usize;
+    for (slot, group) in ParamGroup::ALL.iter().enumerate() {
+        offsets[slot] = u32::try_from(at).expect("parameters fit 32-bit offsets");
+        at += gs.width(*group) * n;
+    }
+    let (lim_x, lim_y) = cam.limits();
+    let image_flag = matches!(pixels, BackgroundPixels::Image(_)) as u32 as f32;
+    FrameUniform {
+        rotation: [
+            cam.rot.x_axis.extend(0.0).into(),
+            cam.rot.y_axis.extend(0.0).into(),
+            cam.rot.z_axis.extend(0.0).into(),
+        ],
+        translation: cam.trans.extend(0.0).into(),
+        position: cam.position.extend(0.0).into(),
+        intrinsics: [cam.fx, cam.fy, cam.cx, cam.cy],
+        limits: [lim_x, lim_y, 0.0, 0.0],
+        background: background.extend(image_flag).into(),
+        image: [cam.width, cam.height, tiles_x, tiles_y],
+        sizes: [n as u32, sh_degree, gs.width(ParamGroup::ShRest) as u32, 0],
+        offsets: [offsets[0], offsets[1], offsets[2], offsets[3]],
+        offsets2: [offsets[4], offsets[5], 0, 0],
+    }
+}
+
+impl Kernels {
+    fn compile(device: &wgpu::Device) -> Self {
+        const COMMON: &str = include_str!("../../shaders/common.wgsl");
+        const GAUSSIAN: &str = include_str!("../../shaders/gaussian.wgsl");
+        const SH: &str = include_str!("../../shaders/sh.wgsl");
+        let module = |name: &str, parts: &[&str]| {
+            device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(parts.concat().into()),
+            })
+        };
+        let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let project = module("project", &[COMMON, GAUSSIAN, SH, include_str!("../../shaders/project.wgsl")]);
+        let sort = module("sort", &[COMMON, include_str!("../../shaders/sort.wgsl")]);
+        let scan = module("scan", &[COMMON, include_str!("../../shaders/scan.wgsl")]);
+        let bin = module("bin", &[COMMON, include_str!("../../shaders/bin.wgsl")]);
+        let ranges = module("tile ranges", &[COMMON, include_str!("../../shaders/tile_ranges.wgsl")]);
+        let raster = module("rasterize", &[COMMON, include_str!("../../shaders/rasterize.wgsl")]);
+        let raster_bwd = module("rasterize backward", &[COMMON, include_str!("../../shaders/rasterize_backward.wgsl")]);
+        let project_bwd =
+            module("project backward", &[COMMON, GAUSSIAN, SH, include_str!("../../shaders/project_backward.wgsl")]);
+        Self {
+            project: pipeline(&project, "main"),
+            count_digits: pipeline(&sort, "count_digits"),
+            scatter: pipeline(&sort, "scatter"),
+            scan_blocks: pipeline(&scan, "scan_blocks"),
+            add_block_offsets: pipeline(&scan, "add_block_offsets"),
+            counts_by_rank: pipeline(&bin, "counts_by_rank"),
+            emit_intersections: pipeline(&bin, "emit_intersections"),
+            tile_ranges: pipeline(&ranges, "main"),
+            rasterize: pipeline(&raster, "main"),
+            rasterize_backward: pipeline(&raster_bwd, "main"),
+            project_backward: pipeline(&project_bwd, "main"),
+        }
+    }
+}
