@@ -10,8 +10,9 @@
 @group(0) @binding(3) var<storage, read> tile_counts: array<u32>;
 @group(0) @binding(4) var<storage, read> projected_grads: array<f32>;
 @group(0) @binding(5) var<storage, read_write> param_grads: array<f32>;
-// Per Gaussian: the NDC mean2d gradient norm, and 1 where it was visible.
-@group(0) @binding(6) var<storage, read_write> mean2d_norms: array<f32>;
+// Per Gaussian: the NDC mean2d gradient norm, 1 (it was visible), and its
+// screen radius (3 sigma of the major axis, pixels).
+@group(0) @binding(6) var<storage, read_write> screen_stats: array<f32>;
 
 // dL/d(unit quaternion (w, x, y, z)) from dL/d(its rotation matrix); g[c][r] = dL/dR[r][c].
 fn quat_matrix_backward(q: vec4<f32>, g: mat3x3<f32>) -> vec4<f32> {
@@ -149,6 +150,8 @@ fn main(
     }
     write3(frame.offsets.x, i, g_mean);
     let ndc = vec2<f32>(0.5 * f32(frame.image.x), 0.5 * f32(frame.image.y));
-    mean2d_norms[2u * i] = length(g_mean2d * ndc);
-    mean2d_norms[2u * i + 1u] = 1.0;
+    screen_stats[3u * i] = length(g_mean2d * ndc);
+    screen_stats[3u * i + 1u] = 1.0;
+    let mid = 0.5 * (cov[0][0] + cov[1][1]);
+    screen_stats[3u * i + 2u] = 3.0 * sqrt(mid + sqrt(max(mid * mid - determinant(cov), 0.0)));
 }

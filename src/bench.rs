@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use crate::camera::{Camera, Intrinsics};
 use crate::render::lanes::Kernels;
-use crate::render::{backward, render, RenderOptions};
+use crate::render::{render, Backend, RenderOptions};
 use crate::splat::{logit, GaussianSet};
 
 /// A seeded random scene that covers the view of [`bench_camera`]: Gaussians
@@ -57,6 +57,8 @@ pub fn bench_camera(size: u32) -> Camera {
 
 #[derive(Debug, Serialize)]
 pub struct RenderBenchRow {
+    /// The backend timed (`Backend::describe`).
+    pub backend: String,
     pub resolution: u32,
     pub gaussians: usize,
     pub visible: usize,
@@ -67,8 +69,9 @@ pub struct RenderBenchRow {
     pub gaussian_pixel_evals: u64,
     /// Evaluations per second, forward pass.
     pub forward_evals_per_s: f64,
-    /// Median time of each stage (project, bin, composite, composite backward, project backward).
-    pub stages_ms: StageTimes,
+    /// Median time of each stage (project, bin, composite, composite backward,
+    /// project backward); CPU backend only.
+    pub stages_ms: Option<StageTimes>,
 }
 
 #[derive(Debug, Default, Serialize)]
@@ -116,31 +119,35 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Time forward and forward+backward (median of `repeats`) for each size and count.
-pub fn render_bench(sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<RenderBenchRow> {
+pub fn render_bench(backend: &Backend, sizes: &[u32], counts: &[usize], repeats: usize) -> Vec<RenderBenchRow> {
     let mut rows = Vec::new();
     for &n in counts {
         let gs = random_scene(n, 7);
         for &size in sizes {
-            rows.push(time_render(&gs, &bench_camera(size), repeats));
+            rows.push(time_render(backend, &gs, &bench_camera(size), repeats));
         }
     }
     rows
 }
 
-/// Time forward and forward+backward of one scene from one camera (medians).
-pub fn time_render(gs: &GaussianSet, cam: &Camera, repeats: usize) -> RenderBenchRow {
+/// Time forward and forward+backward of one scene from one camera on
+/// `backend` (medians). The work measures (visible Gaussians, tile entries,
+/// evaluations) are the scene's, counted by the CPU backend's binning.
+pub fn time_render(backend: &Backend, gs: &GaussianSet, cam: &Camera, repeats: usize) -> RenderBenchRow {
     let opts = RenderOptions::uniform(Vec3::splat(0.2));
     let warm = render(gs, cam, &opts);
     let grad: Vec<f32> = (0..warm.image.color.len()).map(|i| ((i % 7) as f32 - 3.0) * 1e-3).collect();
+    // The first render on a GPU also pays for buffer and pipeline warm-up.
+    std::hint::black_box(backend.render(gs, cam, &opts));
     let mut fwd = Vec::new();
     let mut both = Vec::new();
     for _ in 0..repeats {
         let t = Instant::now();
-        let r = render(gs, cam, &opts);
+        let r = backend.render(gs, cam, &opts);
         fwd.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
-        let r2 = render(gs, cam, &opts);
-        let g = backward(gs, &r2, &grad, None, None);
+        let r2 = backend.render(gs, cam, &opts);
+        let g = backend.backward(gs, &r2, &grad, None, None);
         both.push(t.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box((r, g));
     }
@@ -148,6 +155,7 @@ pub fn time_render(gs: &GaussianSet, cam: &Camera, repeats: usize) -> RenderBenc
     let (w, h) = (cam.width(), cam.height());
     let evals = crate::render::raster::pixel_evaluations(&warm.bins, w, h);
     RenderBenchRow {
+        backend: backend.describe(),
         resolution: w.max(h),
         gaussians: gs.len(),
         visible: warm.visible_count(),
@@ -156,7 +164,7 @@ pub fn time_render(gs: &GaussianSet, cam: &Camera, repeats: usize) -> RenderBenc
         forward_backward_ms: median(both),
         gaussian_pixel_evals: evals,
         forward_evals_per_s: evals as f64 / (forward_ms * 1e-3),
-        stages_ms: stage_times(gs, cam, &opts, &grad, repeats),
+        stages_ms: matches!(backend, Backend::Cpu).then(|| stage_times(gs, cam, &opts, &grad, repeats)),
     }
 }
 

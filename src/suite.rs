@@ -177,7 +177,7 @@ fn stage_one(
     }
     let cfg = StaticConfig::resolve(None, preset, Some(seed), None)?;
     let (train, test) = load_phase_views(data, aim_capture::Phase::Scan, cfg.resolution, cfg.depth_weight > 0.0)?;
-    let setup = RunSetup { run_dir, resume: true, init: None, arriving: None };
+    let setup = RunSetup { run_dir, resume: true, init: None, arriving: None, backend: crate::render::Backend::Cpu };
     match run_static(cfg, &train, &test, &setup, interrupt, &Viz::disabled(), |_| {})? {
         RunOutcome::Finished(m) => Ok(Some((run_dir.join("static.ply"), m.mean_psnr, m.wall_time_s))),
         RunOutcome::Interrupted(_) => Ok(None),
@@ -238,7 +238,7 @@ fn run_one(opts: &SuiteOptions, run: &PlannedRun, interrupt: &AtomicBool) -> Res
     run.variant.configure(&mut cfg, obj.joints.len());
     let out = trial_dir.join(run.variant.name());
     let viz = Viz::disabled();
-    let control = RunControl { resume: true, interrupt, viz: &viz };
+    let control = RunControl { resume: true, interrupt, viz: &viz, backend: crate::render::Backend::Cpu };
     let input = StageTwoInput::load(&data, &cfg)?;
     match run_dynamic(input, &static_ply, &out, cfg, &TsdfConfig::default(), &control, |_| {}) {
         Ok(DynamicOutcome::Interrupted(_)) => return Ok(None),

@@ -104,6 +104,8 @@ fn assert_parity(gs: &GaussianSet, camera: &Camera, options: &RenderOptions, reg
     let scale = cpu_grads.mean2d_grad_norm.iter().fold(0.0f32, |m, v| m.max(*v));
     let d = max_abs_diff(&gpu_grads.mean2d_grad_norm, &cpu_grads.mean2d_grad_norm);
     assert!(d <= 1e-3 * scale + 1e-7, "{what}: mean2d gradient norms differ by {d} (largest {scale})");
+    let d = max_abs_diff(&gpu_grads.radius, &cpu_grads.radius);
+    assert!(d <= 1e-3, "{what}: screen radii differ by {d} px");
 }
 
 #[test]
@@ -171,4 +173,84 @@ fn edge_cases_match() {
     let mut hidden = GaussianSet::new(0);
     hidden.push(Vec3::new(0.0, 0.0, -2.0), Vec3::splat(-2.0), [1.0, 0.0, 0.0, 0.0], logit(0.5), [0.2; 3], &[]);
     assert_parity(&hidden, &bench_camera(48), &RenderOptions::uniform(Vec3::ONE), None);
+}
+
+/// Stage I and a short stage II (node tracking's fitting steps) trained through
+/// the CLI with `--backend gpu` track the same runs with `--backend cpu`: test
+/// PSNR within 0.5 dB after the same iterations.
+#[test]
+fn training_on_the_gpu_backend_tracks_the_cpu_backend() {
+    use std::process::Command;
+
+    use aim::synth::dataset::{write_dataset, SynthConfig};
+    if gpu().is_none() {
+        return;
+    }
+    let root = std::env::temp_dir().join(format!("aim-test-{}-gpu-training", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let data = root.join("data");
+    let cfg = SynthConfig {
+        resolution: 32,
+        scan_views: 12,
+        motion_frames: 12,
+        end_views: 1,
+        test_views: 2,
+        motion_test_every: 6,
+        samples_per_pixel: 1,
+        ..Default::default()
+    };
+    write_dataset(&aim::synth::object("storage").expect("object"), &data, &cfg, &|_, _| {}).expect("written");
+    let aim = || {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_aim"));
+        c.env("XDG_RUNTIME_DIR", std::env::var("XDG_RUNTIME_DIR").unwrap_or_else(|_| "/tmp".into()));
+        c
+    };
+    let metric = |file: std::path::PathBuf, key: &str| -> f64 {
+        let text = std::fs::read_to_string(&file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let json: serde_json::Value = serde_json::from_str(&text).expect("metrics.json parses");
+        json[key].as_f64().unwrap_or_else(|| panic!("{}: no {key}", file.display()))
+    };
+    let mut stage_one = Vec::new();
+    for backend in ["cpu", "gpu"] {
+        let out = root.join(format!("static_{backend}"));
+        let st = aim()
+            .arg("train-static")
+            .arg(&data)
+            .arg("--out")
+            .arg(&out)
+            .args(["--iterations", "100", "--backend", backend])
+            .output()
+            .expect("runs");
+        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        stage_one.push(metric(out.join("metrics.json"), "mean_psnr"));
+    }
+    eprintln!("stage I test PSNR: cpu {:.3} dB, gpu {:.3} dB", stage_one[0], stage_one[1]);
+    assert!((stage_one[0] - stage_one[1]).abs() <= 0.5, "stage I test PSNR cpu {} gpu {}", stage_one[0], stage_one[1]);
+    assert!(stage_one[0] > 15.0, "stage I learnt something: {} dB", stage_one[0]);
+    let mut stage_two = Vec::new();
+    for backend in ["cpu", "gpu"] {
+        let out = root.join(format!("dynamic_{backend}"));
+        let clock = std::time::Instant::now();
+        let st = aim()
+            .arg("train-dynamic")
+            .arg(&data)
+            .arg("--static")
+            .arg(root.join("static_cpu").join("static.ply"))
+            .arg("--out")
+            .arg(&out)
+            .args(["--iterations", "60", "--backend", backend])
+            .output()
+            .expect("runs");
+        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        eprintln!("stage II on {backend}: {:.1} s", clock.elapsed().as_secs_f64());
+        stage_two.push(metric(out.join("metrics.json"), "motion_test_psnr"));
+    }
+    eprintln!("stage II motion PSNR: cpu {:.3} dB, gpu {:.3} dB", stage_two[0], stage_two[1]);
+    assert!(
+        (stage_two[0] - stage_two[1]).abs() <= 0.5,
+        "stage II motion PSNR cpu {} gpu {}",
+        stage_two[0],
+        stage_two[1]
+    );
+    let _ = std::fs::remove_dir_all(&root);
 }

@@ -64,13 +64,19 @@ fn a_session_on_a_dataset_gives_the_stage_commands_result() {
     // The stage commands' path: stage I on the scan's views, stage II on the dataset.
     let (train, scan_test) = load_phase_views(&data, Phase::Scan, cfg.stage_one.resolution, false).expect("scan");
     let batch = root.join("batch");
-    let setup = RunSetup { run_dir: &batch.join("static"), resume: false, init: None, arriving: None };
+    let setup = RunSetup {
+        run_dir: &batch.join("static"),
+        resume: false,
+        init: None,
+        arriving: None,
+        backend: aim::render::Backend::Cpu,
+    };
     let RunOutcome::Finished(batch_one) =
         run_static(cfg.stage_one.clone(), &train, &scan_test, &setup, &never, &viz, |_| {}).expect("stage I")
     else {
         panic!("stage I interrupted")
     };
-    let control = RunControl { resume: false, interrupt: &never, viz: &viz };
+    let control = RunControl { resume: false, interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu };
     let static_ply = batch.join("static").join("static.ply");
     let DynamicOutcome::Finished { metrics: batch_two, .. } = run_dynamic(
         StageTwoInput::load(&data, &cfg.stage_two).expect("dataset"),

@@ -135,6 +135,7 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
     use std::sync::atomic::{AtomicBool, Ordering};
 
     use aim::mesh::tsdf::TsdfConfig;
+    use aim::render::Backend;
     use aim::train::config::StageConfig;
     use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput, StageTwoProgress};
     use aim::train::dynamic_stage::DynamicConfig;
@@ -170,13 +171,13 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
         })
         .expect("stage II runs")
     };
-    let full = run("full", &RunControl { resume: false, interrupt: &never, viz: &viz }, None);
+    let full = run("full", &RunControl { resume: false, interrupt: &never, viz: &viz, backend: Backend::Cpu }, None);
     assert!(matches!(full, DynamicOutcome::Finished { .. }));
     let stop = AtomicBool::new(false);
-    let first = run("cut", &RunControl { resume: false, interrupt: &stop, viz: &viz }, Some(20));
+    let first = run("cut", &RunControl { resume: false, interrupt: &stop, viz: &viz, backend: Backend::Cpu }, Some(20));
     assert!(matches!(first, DynamicOutcome::Interrupted(it) if it < 60), "the run stops early");
     let go_on = AtomicBool::new(false);
-    let second = run("cut", &RunControl { resume: true, interrupt: &go_on, viz: &viz }, None);
+    let second = run("cut", &RunControl { resume: true, interrupt: &go_on, viz: &viz, backend: Backend::Cpu }, None);
     assert!(matches!(second, DynamicOutcome::Finished { .. }));
     let a = std::fs::read(root.join("full").join("track.bin")).expect("track");
     let b = std::fs::read(root.join("cut").join("track.bin")).expect("track");
@@ -190,7 +191,7 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
         &root.join("cut"),
         other,
         &mesh,
-        &RunControl { resume: true, interrupt: &never, viz: &viz },
+        &RunControl { resume: true, interrupt: &never, viz: &viz, backend: Backend::Cpu },
         |_| {},
     )
     .err()

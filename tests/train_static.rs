@@ -56,7 +56,7 @@ fn views(dataset: &Path, file: &str) -> Vec<aim::train::views::TrainView> {
 }
 
 fn setup(dir: &Path, resume: bool) -> RunSetup<'_> {
-    RunSetup { run_dir: dir, resume, init: None, arriving: None }
+    RunSetup { run_dir: dir, resume, init: None, arriving: None, backend: aim::render::Backend::Cpu }
 }
 
 fn finished(outcome: RunOutcome) -> aim::train::static_stage::StaticMetrics {

@@ -22,6 +22,9 @@ pub enum Bench {
         /// Camera JSON for --ply (the `aim render` format).
         #[arg(long, requires = "ply")]
         camera: Option<std::path::PathBuf>,
+        /// Rasterizer: cpu, gpu or auto (see `aim render --help`).
+        #[arg(long, default_value = "cpu")]
+        backend: aim::render::BackendChoice,
     },
     /// Deformation network forward and forward+backward timings.
     Deform {
@@ -174,14 +177,15 @@ pub fn run(b: Bench) -> anyhow::Result<()> {
             let report = serde_json::json!({ "bench": "ingest", "result": r });
             print_report(&report, json)?;
         }
-        Bench::Render { json, repeats, sizes, counts, ply, camera } => {
+        Bench::Render { json, repeats, sizes, counts, ply, camera, backend } => {
+            let backend = aim::render::Backend::open(backend)?;
             let rows = match (ply, camera) {
                 (Some(ply), Some(camera)) => {
                     let gs = aim::splat::ply::read_ply(&ply)?;
                     let cam = aim::camera::Camera::load_json(&camera)?;
-                    vec![aim::bench::time_render(&gs, &cam, repeats.max(1))]
+                    vec![aim::bench::time_render(&backend, &gs, &cam, repeats.max(1))]
                 }
-                _ => aim::bench::render_bench(&sizes, &counts, repeats.max(1)),
+                _ => aim::bench::render_bench(&backend, &sizes, &counts, repeats.max(1)),
             };
             let report = serde_json::json!({
                 "bench": "render",

@@ -49,7 +49,8 @@ const MESH_S_PER_BENCH_MS: f64 = 0.28;
 /// Print the plan with an estimate per stage from a quick measure of this machine.
 fn print_plan() {
     let scene = aim::bench::random_scene(50_000, 7);
-    let bench_ms = aim::bench::time_render(&scene, &aim::bench::bench_camera(256), 3).forward_backward_ms;
+    let bench_ms = aim::bench::time_render(&aim::render::Backend::Cpu, &scene, &aim::bench::bench_camera(256), 3)
+        .forward_backward_ms;
     let total: f64 = PLAN.iter().map(|(_, f)| f * bench_ms).sum();
     println!(
         "plan (this machine renders the 256 px / 50k bench in {bench_ms:.0} ms): about {:.1} min in all",
@@ -88,7 +89,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let never = AtomicBool::new(false);
     let viz = args.rerun.open()?;
     let run_dir = args.out.join("static");
-    let setup = RunSetup { run_dir: &run_dir, resume: false, init: None, arriving: None };
+    let setup =
+        RunSetup { run_dir: &run_dir, resume: false, init: None, arriving: None, backend: aim::render::Backend::Cpu };
     let outcome = run_static(train_cfg, &train, &test, &setup, &never, &viz, |r| {
         bar.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians));
     })?;
@@ -122,7 +124,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dyn_cfg.iterations
     );
     let static_ply = args.out.join("static").join("static.ply");
-    let control = aim::train::dynamic_run::RunControl { resume: false, interrupt: &never, viz: &viz };
+    let control = aim::train::dynamic_run::RunControl {
+        resume: false,
+        interrupt: &never,
+        viz: &viz,
+        backend: aim::render::Backend::Cpu,
+    };
     let Some((parts, metrics)) =
         super::train_dynamic::train_with_progress(&data, &static_ply, &args.out.join("dynamic"), dyn_cfg, &control)?
     else {

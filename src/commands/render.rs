@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 
 use aim::camera::Camera;
-use aim::render::{render, RenderOptions};
+use aim::render::{Backend, BackendChoice, RenderOptions};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -20,20 +20,25 @@ pub struct Args {
     /// Background colour r,g,b in [0, 1].
     #[arg(long, value_parser = super::parse_rgb, default_value = "0,0,0")]
     pub background: glam::Vec3,
+    /// Rasterizer: cpu, gpu (any Vulkan/Metal/DX12 adapter, lavapipe included)
+    /// or auto (a hardware GPU if present, else cpu).
+    #[arg(long, default_value = "cpu")]
+    pub backend: BackendChoice,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let gs = aim::splat::ply::read_ply(&args.splats)?;
     let camera = Camera::load_json(&args.camera)?;
+    let backend = Backend::open(args.backend)?;
     let t = std::time::Instant::now();
-    let r = render(&gs, &camera, &RenderOptions::uniform(args.background));
+    let r = backend.render(&gs, &camera, &RenderOptions::uniform(args.background));
     tracing::info!(
         gaussians = gs.len(),
-        visible = r.visible_count(),
+        backend = backend.describe(),
         ms = t.elapsed().as_secs_f64() * 1e3,
         "rendered {}x{}",
-        r.width,
-        r.height
+        r.width(),
+        r.height()
     );
     super::save_png(&args.out, &image::DynamicImage::ImageRgb8(r.to_rgb8()))
         .with_context(|| format!("writing {}", args.out.display()))

@@ -36,6 +36,9 @@ pub struct Args {
     /// Continue from OUT/checkpoint.bin (written every `checkpoint_interval` iterations and on Ctrl-C).
     #[arg(long)]
     pub resume: bool,
+    /// Rasterizer of node tracking's fitting steps: cpu, gpu or auto (see `aim render --help`).
+    #[arg(long, default_value = "cpu")]
+    pub backend: aim::render::BackendChoice,
     #[command(flatten)]
     pub rerun: super::train_static::RerunArgs,
 }
@@ -121,7 +124,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = DynamicConfig::resolve(args.config.as_deref(), &args.preset, args.seed, args.iterations)?;
     let interrupt = super::progress::interrupt_on_ctrl_c();
     let viz = args.rerun.open()?;
-    let control = RunControl { resume: args.resume, interrupt: &interrupt, viz: &viz };
+    let control = RunControl {
+        resume: args.resume,
+        interrupt: &interrupt,
+        viz: &viz,
+        backend: aim::render::Backend::open(args.backend)?,
+    };
     if let Some((parts, metrics)) = train_with_progress(&args.dataset, &args.static_ply, &args.out, cfg, &control)? {
         print_joints(&parts, metrics.gt_report.as_ref());
     }

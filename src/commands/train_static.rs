@@ -36,6 +36,9 @@ pub struct Args {
     /// Override the iteration count.
     #[arg(long)]
     pub iterations: Option<u32>,
+    /// Rasterizer: cpu, gpu or auto (see `aim render --help`).
+    #[arg(long, default_value = "cpu")]
+    pub backend: aim::render::BackendChoice,
     #[command(flatten)]
     pub rerun: RerunArgs,
 }
@@ -96,7 +99,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut ema_psnr = 0.0f32;
     let viz = args.rerun.open()?;
     let init = args.init_points.as_deref().map(load_init_points).transpose()?;
-    let setup = RunSetup { run_dir: &args.out, resume: args.resume, init: init.as_ref(), arriving: None };
+    let setup = RunSetup {
+        run_dir: &args.out,
+        resume: args.resume,
+        init: init.as_ref(),
+        arriving: None,
+        backend: aim::render::Backend::open(args.backend)?,
+    };
     let outcome = run_static(cfg, &train, &test, &setup, &interrupt, &viz, |r| {
         ema_psnr = if ema_psnr == 0.0 { r.psnr } else { 0.9 * ema_psnr + 0.1 * r.psnr };
         bar.update(r.iteration, || format!("loss {:.4} psnr {:.2} gaussians {}", r.loss, ema_psnr, r.gaussians));

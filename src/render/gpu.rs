@@ -36,8 +36,8 @@ const GRAD_STRIDE: usize = 10;
 /// Why no GPU backend could be made.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
-    #[error("no GPU adapter found (wgpu found {0}); install a Vulkan driver (e.g. mesa-vulkan-drivers) or use --backend cpu")]
-    NoAdapter(String),
+    #[error("no {wanted} found (wgpu found: {found}); install a Vulkan driver (e.g. mesa-vulkan-drivers) or use --backend cpu")]
+    NoAdapter { wanted: &'static str, found: String },
     #[error("the GPU adapter {adapter} refused a device: {message}")]
     Device { adapter: String, message: String },
 }
@@ -156,7 +156,13 @@ impl GpuContext {
             .filter_map(|a| rank(a.get_info().device_type).map(|r| (r, a)))
             .min_by_key(|(r, _)| *r)
             .map(|(_, a)| a)
-            .ok_or_else(|| GpuError::NoAdapter(if found.is_empty() { "none".into() } else { found.join(", ") }))?;
+            .ok_or_else(|| GpuError::NoAdapter {
+                wanted: match kind {
+                    AdapterKind::Any => "GPU adapter",
+                    AdapterKind::Hardware => "hardware GPU adapter",
+                },
+                found: if found.is_empty() { "none".into() } else { found.join(", ") },
+            })?;
         let info = adapter.get_info();
         // The adapter's own limits: big scenes need storage buffers beyond WebGPU's defaults.
         let descriptor =
@@ -361,15 +367,15 @@ impl GpuContext {
         );
         let param_floats = fwd.params.size() / 4;
         let param_grads = self.storage("parameter gradients", 4 * param_floats);
-        let norms = self.storage("mean2d gradient norms", 8 * n as u64);
+        let screen_stats = self.storage("screen statistics", 12 * n as u64);
         self.dispatch_1d(
             &mut enc,
             &self.kernels.project_backward,
-            &[&fwd.frame, &fwd.params, &fwd.splats, &fwd.tile_counts, &projected_grads, &param_grads, &norms],
+            &[&fwd.frame, &fwd.params, &fwd.splats, &fwd.tile_counts, &projected_grads, &param_grads, &screen_stats],
             n as u32,
         );
-        let mut out = self.read_f32s(enc, &[(&param_grads, 0, param_floats), (&norms, 0, 2 * n as u64)]);
-        let norm_values = out.pop().expect("two buffers read");
+        let mut out = self.read_f32s(enc, &[(&param_grads, 0, param_floats), (&screen_stats, 0, 3 * n as u64)]);
+        let stats = out.pop().expect("two buffers read");
         let flat = out.pop().expect("two buffers read");
         let mut params = GaussianSet::new(gs.sh_degree);
         let mut rest: &[f32] = &flat;
@@ -378,8 +384,11 @@ impl GpuContext {
             *params.group_mut(group) = rest[..len].to_vec();
             rest = &rest[len..];
         }
-        let (mean2d_grad_norm, visible) = norm_values.chunks_exact(2).map(|v| (v[0], v[1] > 0.5)).unzip();
-        Gradients { params, background, mean2d_grad_norm, visible }
+        let stats = stats.chunks_exact(3);
+        let mean2d_grad_norm = stats.clone().map(|v| v[0]).collect();
+        let visible = stats.clone().map(|v| v[1] > 0.5).collect();
+        let radius = stats.map(|v| v[2]).collect();
+        Gradients { params, background, mean2d_grad_norm, visible, radius }
     }
 
     fn encoder(&self) -> wgpu::CommandEncoder {

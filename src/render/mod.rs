@@ -15,12 +15,14 @@ use rayon::prelude::*;
 use crate::camera::Camera;
 use crate::splat::GaussianSet;
 
+mod backend;
 pub mod gpu;
 pub mod lanes;
 pub mod project;
 pub mod raster;
 pub mod sh;
 
+pub use backend::{Backend, BackendChoice, View};
 use project::ProjectionCamera;
 
 /// What to render.
@@ -68,7 +70,7 @@ pub struct Render {
 impl Render {
     /// Expected depth of the visible surface per pixel (accumulated depth / alpha; 0 where empty).
     pub fn expected_depth(&self) -> Vec<f32> {
-        self.image.depth.iter().zip(&self.image.alpha).map(|(d, a)| if *a > 1e-6 { d / a } else { 0.0 }).collect()
+        self.image.expected_depth()
     }
 
     /// Number of Gaussians that survived culling.
@@ -78,8 +80,7 @@ impl Render {
 
     /// The colour image as 8-bit RGB.
     pub fn to_rgb8(&self) -> image::RgbImage {
-        let bytes = self.image.color.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
-        image::RgbImage::from_raw(self.width, self.height, bytes).expect("buffer matches image size")
+        self.image.to_rgb8(self.width, self.height)
     }
 }
 
@@ -94,6 +95,9 @@ pub struct Gradients {
     pub mean2d_grad_norm: Vec<f32>,
     /// Whether the Gaussian was visible in this view (counted for densification).
     pub visible: Vec<bool>,
+    /// Per Gaussian, 3 sigma of its projected major axis in pixels (the screen
+    /// size densification prunes on); 0 if culled.
+    pub radius: Vec<f32>,
 }
 
 pub(crate) fn active_degree(gs: &GaussianSet, opts: &RenderOptions) -> u32 {
@@ -209,6 +213,7 @@ pub fn backward(
     params.sh_dc = vec![0.0; 3 * n];
     let mut norms = vec![0.0; n];
     let mut visible = vec![false; n];
+    let mut radius = vec![0.0; n];
     let ndc_scale = glam::Vec2::new(0.5 * w as f32, 0.5 * h as f32);
     for (i, g) in raw.into_iter().enumerate() {
         let Some(g) = g else { continue };
@@ -219,8 +224,9 @@ pub fn backward(
         params.opacity_logits[i] = g.opacity_logit;
         params.sh_dc[3 * i..3 * i + 3].copy_from_slice(&g.sh_dc.to_array());
         norms[i] = (proj_grads[i].mean2d * ndc_scale).length();
+        radius[i] = fwd.projected[i].as_ref().map_or(0.0, |p| p.radius);
     }
-    Gradients { params, background: bg, mean2d_grad_norm: norms, visible }
+    Gradients { params, background: bg, mean2d_grad_norm: norms, visible, radius }
 }
 
 #[cfg(test)]

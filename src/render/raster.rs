@@ -142,6 +142,19 @@ pub struct RasterOutput {
     pub last: Vec<u32>,
 }
 
+impl RasterOutput {
+    /// Expected depth of the visible surface per pixel (accumulated depth / alpha; 0 where empty).
+    pub fn expected_depth(&self) -> Vec<f32> {
+        self.depth.iter().zip(&self.alpha).map(|(d, a)| if *a > 1e-6 { d / a } else { 0.0 }).collect()
+    }
+
+    /// The colour image (`width` x `height`) as 8-bit RGB.
+    pub fn to_rgb8(&self, width: u32, height: u32) -> image::RgbImage {
+        let bytes = self.color.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+        image::RgbImage::from_raw(width, height, bytes).expect("buffer matches image size")
+    }
+}
+
 /// The rows of Gaussian box `bbox` inside tile rect `r` (exclusive end); None if empty.
 #[inline]
 fn clip_rows(bbox: &[u16; 4], r: &[u32; 4]) -> Option<(u32, u32)> {

@@ -818,6 +818,7 @@ impl<'a> InteractionWorker<'a> {
                 resume: false,
                 init: cfg.room.as_ref().map(|r| &r.points),
                 arriving: arriving.as_ref(),
+                backend: crate::render::Backend::Cpu,
             };
             run_static(
                 cfg.stage_one.clone(),
@@ -874,7 +875,12 @@ impl<'a> InteractionWorker<'a> {
             set_backdrops(&mut input.end, &room_set);
             start_state = object_ply;
         }
-        let run_control = RunControl { resume: false, interrupt: control.interrupt, viz: control.viz };
+        let run_control = RunControl {
+            resume: false,
+            interrupt: control.interrupt,
+            viz: control.viz,
+            backend: crate::render::Backend::Cpu,
+        };
         let mut hand_out_to_articulation_s = None;
         let outcome = run_dynamic(
             input,

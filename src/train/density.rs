@@ -10,7 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
-use crate::render::{Gradients, Render};
+use crate::render::Gradients;
 use crate::splat::{logit, retain_rows, sigmoid, GaussianSet, ParamGroup};
 use crate::train::optim::Adam;
 
@@ -41,12 +41,14 @@ impl DensityStats {
     /// Add one view's statistics for the rendered Gaussians `rows` (a render may
     /// cover several sets, e.g. static and moving: row `rows.start + j` of the render
     /// is Gaussian j of this set).
-    pub fn record(&mut self, render: &Render, grads: &Gradients, rows: std::ops::Range<usize>) {
+    pub fn record(&mut self, grads: &Gradients, rows: std::ops::Range<usize>) {
         for (j, i) in rows.enumerate() {
-            let Some(p) = &render.projected[i] else { continue };
+            if !grads.visible[i] {
+                continue;
+            }
             self.grad_accum[j] += grads.mean2d_grad_norm[i];
             self.denom[j] += 1.0;
-            self.max_radius[j] = self.max_radius[j].max(p.radius);
+            self.max_radius[j] = self.max_radius[j].max(grads.radius[i]);
         }
     }
 

@@ -46,6 +46,8 @@ pub struct RunControl<'a> {
     /// Rerun log: scalars (every 10 iterations, or every tracked segment); the
     /// sets at t = 0, 0.5, 1 at every checkpoint; the parts at the end.
     pub viz: &'a Viz,
+    /// The rasterizer node tracking's fitting steps render with.
+    pub backend: crate::render::Backend,
 }
 
 /// One moving part as metrics.json lists it.
@@ -311,6 +313,8 @@ fn run_node_track(
         tracker.take_hold(&frames, &end_views);
         (tracker, 0.0)
     };
+    tracker.backend = control.backend.clone();
+    tracing::info!(backend = tracker.backend.describe(), "stage II");
     let started = Instant::now();
     let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();
     let per_segment = tracker.iterations_per_segment;

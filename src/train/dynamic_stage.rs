@@ -638,9 +638,9 @@ impl DualTrainer {
         let d = self.config.density.clone();
         let opacity_only = it <= self.config.static_opacity_only_iterations;
         if it < d.until_iter {
-            self.moving.stats.record(&r, &grads, ns..ns + nm);
+            self.moving.stats.record(&grads, ns..ns + nm);
             if !opacity_only {
-                self.static_set.stats.record(&r, &grads, 0..ns);
+                self.static_set.stats.record(&grads, 0..ns);
             }
         }
         let lr_static = self.learning_rates(it, !opacity_only);

@@ -15,7 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{write_atomic, Error, Result};
-use crate::render::{backward, render, RenderOptions};
+use crate::render::{render, Backend, RenderOptions};
 use crate::splat::ply::PointCloud;
 use crate::splat::GaussianSet;
 use crate::train::config::{StageConfig, StaticConfig};
@@ -40,6 +40,9 @@ pub struct StepReport {
 /// must be saved to resume training exactly.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct GaussianTrainer {
+    /// The rasterizer the steps render with (not saved: a run may resume on another).
+    #[serde(skip)]
+    pub backend: Backend,
     pub config: StaticConfig,
     pub gaussians: GaussianSet,
     pub adam: Adam,
@@ -132,7 +135,7 @@ impl GaussianTrainer {
         };
         let adam = Adam::new(&gaussians);
         let stats = DensityStats::new(gaussians.len());
-        Ok(Self { extent: camera_extent(views), config, gaussians, adam, stats, iteration: 0 })
+        Ok(Self { backend: Backend::Cpu, extent: camera_extent(views), config, gaussians, adam, stats, iteration: 0 })
     }
 
     /// SH degree in use at iteration `it` (raised every `sh_increase_interval`).
@@ -148,19 +151,21 @@ impl GaussianTrainer {
         let streams = (STREAM_VIEWS, STREAM_BACKGROUND);
         let (view, bg) = pick_view(views, c.seed, self.iteration, c.random_background, c.eval_background, streams);
         let opts = RenderOptions { background: bg, sh_degree: Some(self.active_sh_degree(it)), background_image: None };
-        let r = render(&self.gaussians, &view.camera, &opts);
+        let r = self.backend.render(&self.gaussians, &view.camera, &opts);
+        let image = r.image();
         let target = view.target(bg);
         let loss =
-            loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, self.config.lambda_dssim);
-        let depth = view.depth_loss(&r.image.depth, self.config.depth_weight);
-        let grads = backward(&self.gaussians, &r, &loss.grad, None, depth.as_ref().map(|(_, g)| g.as_slice()));
+            loss_and_grad(&image.color, &target, r.width() as usize, r.height() as usize, self.config.lambda_dssim);
+        let depth = view.depth_loss(&image.depth, self.config.depth_weight);
+        let grads =
+            self.backend.backward(&self.gaussians, &r, &loss.grad, None, depth.as_ref().map(|(_, g)| g.as_slice()));
         let d = &self.config.density;
         let total = loss.loss + depth.as_ref().map_or(0.0, |(l, _)| *l);
         let mut report =
-            StepReport { iteration: it, loss: total, psnr: psnr(&r.image.color, &target), ..Default::default() };
+            StepReport { iteration: it, loss: total, psnr: psnr(&image.color, &target), ..Default::default() };
 
         if it < d.until_iter {
-            self.stats.record(&r, &grads, 0..self.gaussians.len());
+            self.stats.record(&grads, 0..self.gaussians.len());
         }
         let lrs = self.config.lr.rates(it, self.config.iterations, self.extent);
         self.adam.step(&mut self.gaussians, &grads.params, &lrs);
@@ -303,6 +308,8 @@ pub struct RunSetup<'a> {
     pub resume: bool,
     /// Initial points (a fresh run only); None = random points in the configured box.
     pub init: Option<&'a PointCloud>,
+    /// The rasterizer to train with.
+    pub backend: Backend,
     /// More training views arriving while it trains (a live session's scan), in
     /// order; the set is complete when their sender is dropped. Iteration i trains
     /// on the first `1 + i / ITERATIONS_PER_ARRIVING_VIEW` views (waiting for them
@@ -372,6 +379,8 @@ pub fn run_static(
     } else {
         (GaussianTrainer::new(config.clone(), train, setup.init)?, 0.0)
     };
+    trainer.backend = setup.backend.clone();
+    tracing::info!(backend = trainer.backend.describe(), "stage I");
     let toml_text = toml::to_string(&config).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&paths.config(), toml_text.as_bytes())?;
 

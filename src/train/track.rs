@@ -29,7 +29,7 @@ use super::views::TrainView;
 use crate::error::{Error, Result};
 use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::project::{project_one, ProjectionCamera};
-use crate::render::{backward, crop, region_rows, render, render_region};
+use crate::render::{crop, region_rows, render, render_region};
 use crate::splat::GaussianSet;
 
 mod contact;
@@ -298,6 +298,9 @@ pub struct SegmentFit {
 /// The tracker's whole state (what a checkpoint holds).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct NodeTracker {
+    /// The rasterizer the fitting steps render with (not saved: a run may resume on another).
+    #[serde(skip)]
+    pub backend: crate::render::Backend,
     pub config: DynamicConfig,
     /// The start-state Gaussians tracked (floaters removed).
     pub gaussians: GaussianSet,
@@ -465,6 +468,7 @@ impl NodeTracker {
         let revealed = RevealedContent::seed(&gaussians, scan, t.revealed_gaussians, size, config.seed);
         tracing::info!(nodes = n, revealed = revealed.len(), "stage II: start state bound to nodes");
         Ok(Self {
+            backend: crate::render::Backend::Cpu,
             revealed,
             free_knots: Vec::new(),
             contact: None,
@@ -823,7 +827,7 @@ impl NodeTracker {
             let g = if articulated { self.revealed.with(deformed) } else { deformed };
             let in_tail = i >= per_segment - tail;
             let whole = [0, 0, view.camera.width(), view.camera.height()];
-            let fit = region_step(&g, view, bg, whole, c.lambda_dssim, 0.0, c.track.depth_weight);
+            let fit = region_step(&self.backend, &g, view, bg, whole, c.lambda_dssim, 0.0, c.track.depth_weight);
             let tracked = self.gaussians.len();
             if articulated && !self.revealed.is_empty() {
                 self.revealed.step(&fit.grads.params.rows(tracked..g.len()));
@@ -839,7 +843,7 @@ impl NodeTracker {
             }
             if in_tail {
                 loss += fit.loss / tail as f32;
-                quality += psnr(&fit.render.image.color, &fit.target) / tail as f32;
+                quality += psnr(&fit.render.image().color, &fit.target) / tail as f32;
             }
             self.add_arap(&poses, &mut at_t);
             if let Some(parts) = &self.articulation {
@@ -1413,7 +1417,8 @@ impl NodeTracker {
         bg: Vec3,
         region: [u32; 4],
     ) -> (Vec<f32>, f32) {
-        let fit = region_step(g, view, bg, region, self.config.lambda_dssim, self.config.track.end_alpha_weight, 0.0);
+        let (lambda_dssim, alpha_weight) = (self.config.lambda_dssim, self.config.track.end_alpha_weight);
+        let fit = region_step(&self.backend, g, view, bg, region, lambda_dssim, alpha_weight, 0.0);
         let at = self.photometric_node_gradient(poses, g, &fit.grads.params);
         let parts = self.articulation.as_ref().expect("parts");
         let last = parts.poses.len() - 1;
@@ -1966,13 +1971,15 @@ fn distinct_poses(scored: &[(f32, NodePose)], n: usize, angle: f32, distance: f3
 /// L1 term on coverage at `alpha_weight` where the view has alpha, the depth term
 /// at `depth_weight`, which needs the whole image) as a mean over the whole image.
 struct RegionStep {
-    render: crate::render::Render,
+    render: crate::render::View,
     target: Vec<f32>,
     loss: f32,
     grads: crate::render::Gradients,
 }
 
+#[allow(clippy::too_many_arguments)]
 fn region_step(
+    backend: &crate::render::Backend,
     g: &GaussianSet,
     view: &TrainView,
     bg: Vec3,
@@ -1982,27 +1989,28 @@ fn region_step(
     depth_weight: f32,
 ) -> RegionStep {
     let (width, height) = (view.camera.width(), view.camera.height());
-    let render = render_region(g, &view.camera, region, &view.render_options(bg));
+    let render = backend.render_region(g, &view.camera, region, &view.render_options(bg));
+    let image = render.image();
     let target = view.target(bg);
     // The whole view (every tracking step) needs no copy.
     let target = if region == [0, 0, width, height] { target } else { crop(&target, width, 3, region) };
-    let (w, h) = (render.width as usize, render.height as usize);
-    let mut l = loss_and_grad(&render.image.color, &target, w, h, lambda_dssim);
+    let (w, h) = (render.width() as usize, render.height() as usize);
+    let mut l = loss_and_grad(&image.color, &target, w, h, lambda_dssim);
     // A mean over the whole image, not over the region.
     let share = (w * h) as f32 / (width * height) as f32;
     l.grad.iter_mut().for_each(|v| *v *= share);
     let aw = alpha_weight / (width * height) as f32;
     let alpha_grad: Option<Vec<f32>> = view.alpha.as_ref().filter(|_| aw > 0.0).map(|a| {
         let a = crop(a, width, 1, region);
-        render.image.alpha.iter().zip(&a).map(|(x, y)| aw * (x - y).signum()).collect()
+        image.alpha.iter().zip(&a).map(|(x, y)| aw * (x - y).signum()).collect()
     });
     let depth = (depth_weight > 0.0)
         .then(|| {
             assert_eq!(region, [0, 0, width, height], "the depth term needs the whole image");
-            view.depth_loss(&render.image.depth, depth_weight).map(|(_, grad)| grad)
+            view.depth_loss(&image.depth, depth_weight).map(|(_, grad)| grad)
         })
         .flatten();
-    let grads = backward(g, &render, &l.grad, alpha_grad.as_deref(), depth.as_deref());
+    let grads = backend.backward(g, &render, &l.grad, alpha_grad.as_deref(), depth.as_deref());
     RegionStep { render, target, loss: l.loss * share, grads }
 }
 
@@ -2212,7 +2220,7 @@ mod tests {
 
     use super::*;
     use crate::camera::{Camera, Intrinsics};
-    use crate::render::RenderOptions;
+    use crate::render::{backward, RenderOptions};
     use crate::splat::logit;
 
     /// A few large, overlapping Gaussians in front of a small camera, bound to two
