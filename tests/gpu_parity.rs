@@ -12,7 +12,7 @@ use std::sync::{Arc, OnceLock};
 use aim::bench::{bench_camera, random_scene};
 use aim::camera::{Camera, Intrinsics};
 use aim::render::gpu::{AdapterKind, GpuContext};
-use aim::render::{backward, render, render_region, RenderOptions};
+use aim::render::{backward_sets, render_sets, Gradients, RenderOptions};
 use aim::splat::{logit, GaussianSet, ParamGroup};
 use glam::{Mat4, Vec3};
 use rand::{Rng, SeedableRng};
@@ -68,13 +68,17 @@ fn pixel_gradients(pixels: usize, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
 
 /// Render and differentiate `gs` on both backends and compare.
 fn assert_parity(gs: &GaussianSet, camera: &Camera, options: &RenderOptions, region: Option<[u32; 4]>) {
+    assert_sets_parity(&[gs], camera, options, region.unwrap_or([0, 0, camera.width(), camera.height()]));
+}
+
+/// Render several sets as one scene and differentiate them on both backends and compare.
+fn assert_sets_parity(sets: &[&GaussianSet], camera: &Camera, options: &RenderOptions, region: [u32; 4]) {
     let Some(ctx) = gpu() else { return };
-    let (cpu, gpu) = match region {
-        Some(r) => (render_region(gs, camera, r, options), ctx.render_region(gs, camera, r, options)),
-        None => (render(gs, camera, options), ctx.render(gs, camera, options)),
-    };
+    let cpu = render_sets(sets, camera, region, options);
+    let gpu = ctx.render_sets(sets, camera, region, options);
     assert_eq!((gpu.width, gpu.height), (cpu.width, cpu.height));
-    let what = format!("{} Gaussians, {}x{}", gs.len(), cpu.width, cpu.height);
+    let n: usize = sets.iter().map(|s| s.len()).sum();
+    let what = format!("{n} Gaussians in {} sets, {}x{}", sets.len(), cpu.width, cpu.height);
     for (name, a, b) in [
         ("colour", &gpu.image.color, &cpu.image.color),
         ("alpha", &gpu.image.alpha, &cpu.image.alpha),
@@ -87,8 +91,15 @@ fn assert_parity(gs: &GaussianSet, camera: &Camera, options: &RenderOptions, reg
     assert!(d <= 1e-4 * depth_scale, "{what}: accumulated depth differs by {d} (largest {depth_scale})");
 
     let (gc, ga, gd) = pixel_gradients((cpu.width * cpu.height) as usize, 7);
-    let cpu_grads = backward(gs, &cpu, &gc, Some(&ga), Some(&gd));
-    let gpu_grads = ctx.backward(gs, &gpu, &gc, Some(&ga), Some(&gd));
+    let cpu_sets = backward_sets(sets, &cpu, &gc, Some(&ga), Some(&gd));
+    let gpu_sets = ctx.backward_sets(sets, &gpu, &gc, Some(&ga), Some(&gd));
+    assert_eq!(gpu_sets.len(), sets.len());
+    for (cpu_grads, gpu_grads) in cpu_sets.iter().zip(&gpu_sets) {
+        assert_gradients_match(&what, cpu_grads, gpu_grads);
+    }
+}
+
+fn assert_gradients_match(what: &str, cpu_grads: &Gradients, gpu_grads: &Gradients) {
     for group in ParamGroup::ALL {
         let (a, b) = (gpu_grads.params.group(group), cpu_grads.params.group(group));
         let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
@@ -114,6 +125,14 @@ fn random_scenes_from_ten_to_a_hundred_thousand_gaussians_match_the_cpu_backend(
         let gs = random_scene(n, seed);
         assert_parity(&gs, &bench_camera(size), &RenderOptions::uniform(Vec3::new(0.1, 0.2, 0.3)), None);
     }
+}
+
+#[test]
+fn sets_rendered_together_match() {
+    let (a, b) = (random_scene(3_000, 8), random_scene(500, 9));
+    let camera = bench_camera(128);
+    assert_sets_parity(&[&a, &b], &camera, &RenderOptions::uniform(Vec3::splat(0.3)), [0, 0, 128, 128]);
+    assert_sets_parity(&[&b, &a, &b], &camera, &RenderOptions::uniform(Vec3::ZERO), [20, 30, 100, 90]);
 }
 
 #[test]
@@ -201,7 +220,8 @@ fn training_on_the_gpu_backend_tracks_the_cpu_backend() {
     };
     write_dataset(&aim::synth::object("storage").expect("object"), &data, &cfg, &|_, _| {}).expect("written");
     let aim = || {
-        let mut c = Command::new(env!("CARGO_BIN_EXE_aim"));
+        // AIM_BIN: the binary beside a test binary carried to another machine (tests/gpu_check).
+        let mut c = Command::new(std::env::var("AIM_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_aim").into()));
         c.env("XDG_RUNTIME_DIR", std::env::var("XDG_RUNTIME_DIR").unwrap_or_else(|_| "/tmp".into()));
         c
     };

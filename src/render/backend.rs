@@ -88,9 +88,21 @@ impl Backend {
     /// Render the pixels `region` = [x0, y0, x1, y1) of `camera`'s image (see
     /// [`super::render_region`]).
     pub fn render_region(&self, gs: &GaussianSet, camera: &Camera, region: [u32; 4], options: &RenderOptions) -> View {
+        self.render_sets(&[gs], camera, region, options)
+    }
+
+    /// Render several sets as one scene without copying them into one (see
+    /// [`super::render_sets`]).
+    pub fn render_sets(
+        &self,
+        sets: &[&GaussianSet],
+        camera: &Camera,
+        region: [u32; 4],
+        options: &RenderOptions,
+    ) -> View {
         match self {
-            Backend::Cpu => View::Cpu(super::render_region(gs, camera, region, options)),
-            Backend::Gpu(ctx) => View::Gpu(ctx.render_region(gs, camera, region, options)),
+            Backend::Cpu => View::Cpu(super::render_sets(sets, camera, region, options)),
+            Backend::Gpu(ctx) => View::Gpu(ctx.render_sets(sets, camera, region, options)),
         }
     }
 
@@ -103,9 +115,21 @@ impl Backend {
         grad_alpha: Option<&[f32]>,
         grad_depth: Option<&[f32]>,
     ) -> Gradients {
+        self.backward_sets(&[gs], view, grad_color, grad_alpha, grad_depth).pop().expect("one set")
+    }
+
+    /// Backward pass of a [`Self::render_sets`] view: one [`Gradients`] per set.
+    pub fn backward_sets(
+        &self,
+        sets: &[&GaussianSet],
+        view: &View,
+        grad_color: &[f32],
+        grad_alpha: Option<&[f32]>,
+        grad_depth: Option<&[f32]>,
+    ) -> Vec<Gradients> {
         match (self, view) {
-            (Backend::Cpu, View::Cpu(r)) => super::backward(gs, r, grad_color, grad_alpha, grad_depth),
-            (Backend::Gpu(ctx), View::Gpu(r)) => ctx.backward(gs, r, grad_color, grad_alpha, grad_depth),
+            (Backend::Cpu, View::Cpu(r)) => super::backward_sets(sets, r, grad_color, grad_alpha, grad_depth),
+            (Backend::Gpu(ctx), View::Gpu(r)) => ctx.backward_sets(sets, r, grad_color, grad_alpha, grad_depth),
             _ => panic!("a view is differentiated by the backend that rendered it"),
         }
     }

@@ -21,7 +21,7 @@ use wgpu::util::DeviceExt;
 
 use super::project::ProjectionCamera;
 use super::raster::{RasterOutput, TILE};
-use super::{active_degree, crop, Gradients, RenderOptions};
+use super::{Gradients, Prepared, RenderOptions};
 use crate::camera::Camera;
 use crate::splat::{GaussianSet, ParamGroup};
 
@@ -109,7 +109,8 @@ pub struct GpuRender {
     pub image: RasterOutput,
     /// Gaussian-tile pairs rendered (the work measure of binning).
     pub intersections: u32,
-    gaussian_count: usize,
+    /// Rows of each rendered set.
+    set_sizes: Vec<usize>,
     background: BackgroundPixels,
     frame: wgpu::Buffer,
     params: wgpu::Buffer,
@@ -180,49 +181,33 @@ impl GpuContext {
 
     /// Render `gs` from `camera` (as [`super::render`]).
     pub fn render(&self, gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> GpuRender {
-        self.render_region(gs, camera, [0, 0, camera.width(), camera.height()], options)
+        self.render_sets(&[gs], camera, [0, 0, camera.width(), camera.height()], options)
     }
 
-    /// Render the pixels `region` = [x0, y0, x1, y1) of `camera`'s image (as
-    /// [`super::render_region`]).
-    pub fn render_region(
+    /// Render several Gaussian sets as one scene on the pixels `region` =
+    /// [x0, y0, x1, y1) of `camera`'s image (as [`super::render_sets`]).
+    pub fn render_sets(
         &self,
-        gs: &GaussianSet,
+        sets: &[&GaussianSet],
         camera: &Camera,
         region: [u32; 4],
         options: &RenderOptions,
     ) -> GpuRender {
-        let [x0, y0, x1, y1] = region;
-        assert!(
-            x0 < x1 && y0 < y1 && x1 <= camera.width() && y1 <= camera.height(),
-            "region {region:?} outside the {}x{} image",
-            camera.width(),
-            camera.height()
-        );
-        let (width, height) = (x1 - x0, y1 - y0);
+        let prep = Prepared::new(sets, camera, region, options);
+        let projection = prep.projection;
+        let (width, height) = (projection.width, projection.height);
         let (tiles_x, tiles_y) = (width.div_ceil(TILE), height.div_ceil(TILE));
-        let n = gs.len();
+        let set_sizes: Vec<usize> = sets.iter().map(|s| s.len()).collect();
+        let n: usize = set_sizes.iter().sum();
         let count = u32::try_from(n).expect("at most 2^32 Gaussians");
-        let sh_degree = active_degree(gs, options);
-        let background = match &options.background_image {
-            Some(img) => {
-                assert_eq!(
-                    img.len(),
-                    3 * (camera.width() * camera.height()) as usize,
-                    "background image must match the camera"
-                );
-                BackgroundPixels::Image(if region == [0, 0, camera.width(), camera.height()] {
-                    img.clone()
-                } else {
-                    crop(img, camera.width(), 3, region).into()
-                })
-            }
+        let background = match prep.background_pixels {
+            Some(img) => BackgroundPixels::Image(img),
             None => BackgroundPixels::Uniform(options.background),
         };
-        let projection = ProjectionCamera::new(camera).region(region);
-        let uniform = frame_uniform(gs, &projection, sh_degree, options.background, &background, [tiles_x, tiles_y]);
+        let uniform =
+            frame_uniform(sets, &projection, prep.sh_degree, options.background, &background, [tiles_x, tiles_y]);
         let frame = self.uniform(&uniform);
-        let params = self.storage_init("params", bytemuck::cast_slice(&param_buffer(gs)));
+        let params = self.storage_init("params", bytemuck::cast_slice(&param_buffer(sets)));
 
         // Project, sort by depth, and count each rank's tiles.
         let mut enc = self.encoder();
@@ -307,7 +292,7 @@ impl GpuContext {
             height,
             image,
             intersections: total,
-            gaussian_count: n,
+            set_sizes,
             background,
             frame,
             params,
@@ -329,8 +314,22 @@ impl GpuContext {
         grad_alpha: Option<&[f32]>,
         grad_depth: Option<&[f32]>,
     ) -> Gradients {
-        let n = gs.len();
-        assert_eq!(n, fwd.gaussian_count, "the backward pass needs the rendered Gaussian set");
+        self.backward_sets(&[gs], fwd, grad_color, grad_alpha, grad_depth).pop().expect("one set")
+    }
+
+    /// Backward pass of a [`Self::render_sets`] render: one [`Gradients`] per set
+    /// (as [`super::backward_sets`]).
+    pub fn backward_sets(
+        &self,
+        sets: &[&GaussianSet],
+        fwd: &GpuRender,
+        grad_color: &[f32],
+        grad_alpha: Option<&[f32]>,
+        grad_depth: Option<&[f32]>,
+    ) -> Vec<Gradients> {
+        let sizes: Vec<usize> = sets.iter().map(|s| s.len()).collect();
+        assert_eq!(sizes, fwd.set_sizes, "the backward pass needs the rendered Gaussian sets");
+        let n: usize = sizes.iter().sum();
         let pixels = (fwd.width * fwd.height) as usize;
         assert_eq!(grad_color.len(), 3 * pixels, "colour gradient must match the image");
         // Per pixel what the kernel reads, and the background's gradient, which is
@@ -377,18 +376,34 @@ impl GpuContext {
         let mut out = self.read_f32s(enc, &[(&param_grads, 0, param_floats), (&screen_stats, 0, 3 * n as u64)]);
         let stats = out.pop().expect("two buffers read");
         let flat = out.pop().expect("two buffers read");
-        let mut params = GaussianSet::new(gs.sh_degree);
+        // Each group's block holds the sets one after another.
+        let mut grads: Vec<Gradients> = sets
+            .iter()
+            .map(|gs| Gradients {
+                params: GaussianSet::new(gs.sh_degree),
+                background,
+                mean2d_grad_norm: Vec::with_capacity(gs.len()),
+                visible: Vec::with_capacity(gs.len()),
+                radius: Vec::with_capacity(gs.len()),
+            })
+            .collect();
         let mut rest: &[f32] = &flat;
         for group in ParamGroup::ALL {
-            let len = gs.width(group) * n;
-            *params.group_mut(group) = rest[..len].to_vec();
-            rest = &rest[len..];
+            for (g, gs) in grads.iter_mut().zip(sets) {
+                let len = gs.width(group) * gs.len();
+                *g.params.group_mut(group) = rest[..len].to_vec();
+                rest = &rest[len..];
+            }
         }
-        let stats = stats.chunks_exact(3);
-        let mean2d_grad_norm = stats.clone().map(|v| v[0]).collect();
-        let visible = stats.clone().map(|v| v[1] > 0.5).collect();
-        let radius = stats.map(|v| v[2]).collect();
-        Gradients { params, background, mean2d_grad_norm, visible, radius }
+        let mut stats = stats.chunks_exact(3);
+        for (g, gs) in grads.iter_mut().zip(sets) {
+            for v in stats.by_ref().take(gs.len()) {
+                g.mean2d_grad_norm.push(v[0]);
+                g.visible.push(v[1] > 0.5);
+                g.radius.push(v[2]);
+            }
+        }
+        grads
     }
 
     fn encoder(&self) -> wgpu::CommandEncoder {
@@ -567,29 +582,35 @@ fn groups_1d(count: u32) -> (u32, u32) {
     (x, blocks.div_ceil(x))
 }
 
-/// The set's parameter groups one after another, in [`ParamGroup::ALL`] order.
-fn param_buffer(gs: &GaussianSet) -> Vec<f32> {
-    let mut flat = Vec::with_capacity(ParamGroup::ALL.iter().map(|g| gs.group(*g).len()).sum());
+/// The sets' parameter groups one after another, in [`ParamGroup::ALL`] order,
+/// each group holding the sets one after another: the layout of one set that
+/// holds them all.
+fn param_buffer(sets: &[&GaussianSet]) -> Vec<f32> {
+    let mut flat = Vec::with_capacity(sets.iter().flat_map(|gs| ParamGroup::ALL.map(|g| gs.group(g).len())).sum());
     for group in ParamGroup::ALL {
-        flat.extend_from_slice(gs.group(group));
+        for gs in sets {
+            flat.extend_from_slice(gs.group(group));
+        }
     }
     flat
 }
 
 fn frame_uniform(
-    gs: &GaussianSet,
+    sets: &[&GaussianSet],
     cam: &ProjectionCamera,
     sh_degree: u32,
     background: Vec3,
     pixels: &BackgroundPixels,
     [tiles_x, tiles_y]: [u32; 2],
 ) -> FrameUniform {
-    let n = gs.len();
+    let n: usize = sets.iter().map(|s| s.len()).sum();
+    // The sets share an SH degree (Prepared::new checks), so one set's widths are all's.
+    let widths = sets[0];
     let mut offsets = [0u32; 6];
     let mut at = 0usize;
     for (slot, group) in ParamGroup::ALL.iter().enumerate() {
         offsets[slot] = u32::try_from(at).expect("parameters fit 32-bit offsets");
-        at += gs.width(*group) * n;
+        at += widths.width(*group) * n;
     }
     let (lim_x, lim_y) = cam.limits();
     let image_flag = matches!(pixels, BackgroundPixels::Image(_)) as u32 as f32;
@@ -605,7 +626,7 @@ fn frame_uniform(
         limits: [lim_x, lim_y, 0.0, 0.0],
         background: background.extend(image_flag).into(),
         image: [cam.width, cam.height, tiles_x, tiles_y],
-        sizes: [n as u32, sh_degree, gs.width(ParamGroup::ShRest) as u32, 0],
+        sizes: [n as u32, sh_degree, widths.width(ParamGroup::ShRest) as u32, 0],
         offsets: [offsets[0], offsets[1], offsets[2], offsets[3]],
         offsets2: [offsets[4], offsets[5], 0, 0],
     }

@@ -100,10 +100,6 @@ pub struct Gradients {
     pub radius: Vec<f32>,
 }
 
-pub(crate) fn active_degree(gs: &GaussianSet, opts: &RenderOptions) -> u32 {
-    opts.sh_degree.map_or(gs.sh_degree, |d| d.min(gs.sh_degree))
-}
-
 /// Render `gs` from `camera`.
 pub fn render(gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> Render {
     render_region(gs, camera, [0, 0, camera.width(), camera.height()], options)
@@ -114,44 +110,79 @@ pub fn render(gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> Ren
 /// cost of the region. The result is the region's image (its `camera` the
 /// region's), and its backward pass gives the gradients of a loss on those pixels.
 pub fn render_region(gs: &GaussianSet, camera: &Camera, region: [u32; 4], options: &RenderOptions) -> Render {
-    let [x0, y0, x1, y1] = region;
-    assert!(
-        x0 < x1 && y0 < y1 && x1 <= camera.width() && y1 <= camera.height(),
-        "region {region:?} outside the {}x{} image",
-        camera.width(),
-        camera.height()
-    );
-    let projection = ProjectionCamera::new(camera).region(region);
-    let deg = active_degree(gs, options);
-    let projected: Vec<_> =
-        (0..gs.len()).into_par_iter().map(|i| project::project_one(gs, i, &projection, deg)).collect();
-    let (w, h) = (x1 - x0, y1 - y0);
-    let bins = raster::bin_tiles(&projected, w, h);
-    let background_pixels = options.background_image.as_ref().map(|img| {
-        assert_eq!(
-            img.len(),
-            3 * (camera.width() * camera.height()) as usize,
-            "background image must match the camera"
+    render_sets(&[gs], camera, region, options)
+}
+
+/// What both backends settle before rendering `sets` (one scene, the sets one
+/// after another) on the pixels `region` of `camera`'s image.
+pub(crate) struct Prepared {
+    pub projection: ProjectionCamera,
+    /// The region's camera.
+    pub camera: Camera,
+    pub sh_degree: u32,
+    /// The background image's pixels of the region, when there is one.
+    pub background_pixels: Option<Arc<[f32]>>,
+}
+
+impl Prepared {
+    pub(crate) fn new(sets: &[&GaussianSet], camera: &Camera, region: [u32; 4], options: &RenderOptions) -> Self {
+        let [x0, y0, x1, y1] = region;
+        assert!(
+            x0 < x1 && y0 < y1 && x1 <= camera.width() && y1 <= camera.height(),
+            "region {region:?} outside the {}x{} image",
+            camera.width(),
+            camera.height()
         );
-        if region == [0, 0, camera.width(), camera.height()] {
-            img.clone()
-        } else {
-            crop(img, camera.width(), 3, region).into()
+        let stored = sets.first().expect("at least one Gaussian set").sh_degree;
+        assert!(sets.iter().all(|s| s.sh_degree == stored), "the sets rendered together share one SH degree");
+        let sh_degree = options.sh_degree.map_or(stored, |d| d.min(stored));
+        let background_pixels = options.background_image.as_ref().map(|img| {
+            assert_eq!(
+                img.len(),
+                3 * (camera.width() * camera.height()) as usize,
+                "background image must match the camera"
+            );
+            if region == [0, 0, camera.width(), camera.height()] {
+                img.clone()
+            } else {
+                crop(img, camera.width(), 3, region).into()
+            }
+        });
+        let mut region_camera = *camera;
+        region_camera.intrinsics.width = x1 - x0;
+        region_camera.intrinsics.height = y1 - y0;
+        region_camera.intrinsics.cx -= x0 as f32;
+        region_camera.intrinsics.cy -= y0 as f32;
+        Self {
+            projection: ProjectionCamera::new(camera).region(region),
+            camera: region_camera,
+            sh_degree,
+            background_pixels,
         }
-    });
-    let image = raster::rasterize(&bins, w, h, background_of(options, background_pixels.as_deref()));
-    let mut camera = *camera;
-    camera.intrinsics.width = w;
-    camera.intrinsics.height = h;
-    camera.intrinsics.cx -= x0 as f32;
-    camera.intrinsics.cy -= y0 as f32;
+    }
+}
+
+/// Render several Gaussian sets as one scene (the sets share an SH degree) on
+/// the pixels `region` of `camera`'s image, without copying them into one set:
+/// rendered Gaussian `o_k + i` is row i of set k, o_k the rows of the sets before
+/// it. [`backward_sets`] gives each set its gradients.
+pub fn render_sets(sets: &[&GaussianSet], camera: &Camera, region: [u32; 4], options: &RenderOptions) -> Render {
+    let prep = Prepared::new(sets, camera, region, options);
+    let (projection, deg) = (prep.projection, prep.sh_degree);
+    let mut projected = Vec::with_capacity(sets.iter().map(|s| s.len()).sum());
+    for gs in sets {
+        projected.par_extend((0..gs.len()).into_par_iter().map(|i| project::project_one(gs, i, &projection, deg)));
+    }
+    let (w, h) = (projection.width, projection.height);
+    let bins = raster::bin_tiles(&projected, w, h);
+    let image = raster::rasterize(&bins, w, h, background_of(options, prep.background_pixels.as_deref()));
     Render {
         width: w,
         height: h,
-        camera,
+        camera: prep.camera,
         projection,
         options: options.clone(),
-        background_pixels,
+        background_pixels: prep.background_pixels,
         sh_degree: deg,
         image,
         projected,
@@ -188,8 +219,21 @@ pub fn backward(
     grad_alpha: Option<&[f32]>,
     grad_depth: Option<&[f32]>,
 ) -> Gradients {
+    backward_sets(&[gs], fwd, grad_color, grad_alpha, grad_depth).pop().expect("one set")
+}
+
+/// Backward pass of a [`render_sets`] render: one [`Gradients`] per set, in
+/// order (the background gradient is the whole render's, in each).
+pub fn backward_sets(
+    sets: &[&GaussianSet],
+    fwd: &Render,
+    grad_color: &[f32],
+    grad_alpha: Option<&[f32]>,
+    grad_depth: Option<&[f32]>,
+) -> Vec<Gradients> {
     let (w, h) = (fwd.width, fwd.height);
     assert_eq!(grad_color.len(), (3 * w * h) as usize, "colour gradient must match the image");
+    assert_eq!(sets.iter().map(|s| s.len()).sum::<usize>(), fwd.projected.len(), "the rendered sets");
     let (proj_grads, bg) = raster::rasterize_backward(
         &fwd.bins,
         w,
@@ -200,33 +244,39 @@ pub fn backward(
         grad_alpha,
         grad_depth,
     );
-    let pc = fwd.projection;
-    let n = gs.len();
-    let (raw, sh_rest) = project::project_backward_all(gs, &fwd.projected, &pc, fwd.sh_degree, &proj_grads);
-
-    let mut params = GaussianSet::new(gs.sh_degree);
-    params.sh_rest = sh_rest;
-    params.means = vec![0.0; 3 * n];
-    params.log_scales = vec![0.0; 3 * n];
-    params.rotations = vec![0.0; 4 * n];
-    params.opacity_logits = vec![0.0; n];
-    params.sh_dc = vec![0.0; 3 * n];
-    let mut norms = vec![0.0; n];
-    let mut visible = vec![false; n];
-    let mut radius = vec![0.0; n];
     let ndc_scale = glam::Vec2::new(0.5 * w as f32, 0.5 * h as f32);
-    for (i, g) in raw.into_iter().enumerate() {
-        let Some(g) = g else { continue };
-        visible[i] = true;
-        params.means[3 * i..3 * i + 3].copy_from_slice(&g.mean.to_array());
-        params.log_scales[3 * i..3 * i + 3].copy_from_slice(&g.log_scale.to_array());
-        params.rotations[4 * i..4 * i + 4].copy_from_slice(&g.rotation);
-        params.opacity_logits[i] = g.opacity_logit;
-        params.sh_dc[3 * i..3 * i + 3].copy_from_slice(&g.sh_dc.to_array());
-        norms[i] = (proj_grads[i].mean2d * ndc_scale).length();
-        radius[i] = fwd.projected[i].as_ref().map_or(0.0, |p| p.radius);
-    }
-    Gradients { params, background: bg, mean2d_grad_norm: norms, visible, radius }
+    let mut first = 0;
+    sets.iter()
+        .map(|gs| {
+            let rows = first..first + gs.len();
+            first = rows.end;
+            let (projected, grads) = (&fwd.projected[rows.clone()], &proj_grads[rows]);
+            let (raw, sh_rest) = project::project_backward_all(gs, projected, &fwd.projection, fwd.sh_degree, grads);
+            let n = gs.len();
+            let mut params = GaussianSet::new(gs.sh_degree);
+            params.sh_rest = sh_rest;
+            params.means = vec![0.0; 3 * n];
+            params.log_scales = vec![0.0; 3 * n];
+            params.rotations = vec![0.0; 4 * n];
+            params.opacity_logits = vec![0.0; n];
+            params.sh_dc = vec![0.0; 3 * n];
+            let mut norms = vec![0.0; n];
+            let mut visible = vec![false; n];
+            let mut radius = vec![0.0; n];
+            for (i, g) in raw.into_iter().enumerate() {
+                let (Some(g), Some(p)) = (g, &projected[i]) else { continue };
+                visible[i] = true;
+                params.means[3 * i..3 * i + 3].copy_from_slice(&g.mean.to_array());
+                params.log_scales[3 * i..3 * i + 3].copy_from_slice(&g.log_scale.to_array());
+                params.rotations[4 * i..4 * i + 4].copy_from_slice(&g.rotation);
+                params.opacity_logits[i] = g.opacity_logit;
+                params.sh_dc[3 * i..3 * i + 3].copy_from_slice(&g.sh_dc.to_array());
+                norms[i] = (grads[i].mean2d * ndc_scale).length();
+                radius[i] = p.radius;
+            }
+            Gradients { params, background: bg, mean2d_grad_norm: norms, visible, radius }
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -471,6 +471,30 @@ fn a_region_renders_and_differentiates_as_those_pixels_of_the_whole_image() {
 }
 
 #[test]
+fn sets_rendered_together_equal_their_union_and_each_gets_its_rows_gradients() {
+    let (gs, cam, bg) = dense_scene();
+    let opts = RenderOptions::uniform(bg);
+    let split = gs.len() / 3;
+    let (a, b) = (gs.rows(0..split), gs.rows(split..gs.len()));
+    let whole = [0, 0, cam.width(), cam.height()];
+    let together = render_sets(&[&a, &b], &cam, whole, &opts);
+    let union = render(&gs, &cam, &opts);
+    assert_eq!(together.image.color, union.image.color);
+    assert_eq!(together.image.depth, union.image.depth);
+    let w = weights((cam.width() * cam.height()) as usize);
+    let per_set = backward_sets(&[&a, &b], &together, &w.c, Some(&w.a), Some(&w.d));
+    let all = backward(&gs, &union, &w.c, Some(&w.a), Some(&w.d));
+    assert_eq!(per_set.len(), 2);
+    assert!(all.params.means.iter().any(|v| *v != 0.0));
+    assert_eq!(per_set[0].params, all.params.rows(0..split));
+    assert_eq!(per_set[1].params, all.params.rows(split..gs.len()));
+    assert_eq!(per_set[1].radius, all.radius[split..]);
+    assert_eq!(per_set[0].visible, all.visible[..split]);
+    assert_eq!(per_set[1].mean2d_grad_norm, all.mean2d_grad_norm[split..]);
+    assert_eq!(per_set[0].background, all.background);
+}
+
+#[test]
 fn fast_exp_matches_f64_exp_on_nonpositive_arguments_with_every_kernel_set() {
     for k in Kernels::available() {
         let exp = |x: f32| dispatch!(k, |L; x: f32| -> f32 { raster::exp_nonpositive(L::splat(x)).to_array()[0] });

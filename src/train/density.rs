@@ -38,17 +38,16 @@ impl DensityStats {
         self.len() == 0
     }
 
-    /// Add one view's statistics for the rendered Gaussians `rows` (a render may
-    /// cover several sets, e.g. static and moving: row `rows.start + j` of the render
-    /// is Gaussian j of this set).
-    pub fn record(&mut self, grads: &Gradients, rows: std::ops::Range<usize>) {
-        for (j, i) in rows.enumerate() {
+    /// Add one view's statistics: `grads` are this set's (a render of several
+    /// sets gives each its own, `render::backward_sets`).
+    pub fn record(&mut self, grads: &Gradients) {
+        for i in 0..self.len() {
             if !grads.visible[i] {
                 continue;
             }
-            self.grad_accum[j] += grads.mean2d_grad_norm[i];
-            self.denom[j] += 1.0;
-            self.max_radius[j] = self.max_radius[j].max(grads.radius[i]);
+            self.grad_accum[i] += grads.mean2d_grad_norm[i];
+            self.denom[i] += 1.0;
+            self.max_radius[i] = self.max_radius[i].max(grads.radius[i]);
         }
     }
 

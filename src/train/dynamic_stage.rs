@@ -15,7 +15,7 @@ use crate::error::{Error, Result};
 use crate::motion::{
     extract_joint, kmeans_rigid_parts, segment_rigid_parts, JointEstimate, RansacConfig, Rigid, Trajectories,
 };
-use crate::render::{backward, render, RenderOptions};
+use crate::render::{backward_sets, render, render_sets, Gradients, RenderOptions};
 use crate::splat::{sigmoid, GaussianSet};
 use crate::train::config::{DensityConfig, LrConfig, Preset, StageConfig};
 use crate::train::density::{densify_and_prune, remove, reset_opacity, DensityStats, OPACITY_RESET_VALUE};
@@ -593,22 +593,22 @@ impl DualTrainer {
         let t = view.time.unwrap_or(0.0);
 
         let deforming = it > self.config.warmup_iterations;
-        let ns = self.static_set.gaussians.len();
         let nm = self.moving.gaussians.len();
         let mut moving = self.moving.gaussians.clone();
         let deform = deforming.then(|| self.net.forward(&moving.means, network_time(t)));
         if let Some(d) = &deform {
             d.apply(&mut moving);
         }
-        let mut union = self.static_set.gaussians.clone();
-        union.extend_from(&moving);
-        let r = render(&union, &view.camera, &RenderOptions::uniform(bg));
+        // Both sets rendered as one scene, each getting its own gradients.
+        let sets = [&self.static_set.gaussians, &moving];
+        let whole = [0, 0, view.camera.width(), view.camera.height()];
+        let r = render_sets(&sets, &view.camera, whole, &RenderOptions::uniform(bg));
         let target = view.target(bg);
         let loss =
             loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, self.config.lambda_dssim);
-        let grads = backward(&union, &r, &loss.grad, None, None);
-        let g_static = grads.params.rows(0..ns);
-        let g_moving = grads.params.rows(ns..ns + nm);
+        let [grads_static, grads_moving]: [Gradients; 2] =
+            backward_sets(&sets, &r, &loss.grad, None, None).try_into().expect("one per set");
+        let (g_static, g_moving) = (&grads_static.params, &grads_moving.params);
 
         // The deformed mean is mean + d(sg(mean)): the canonical mean and the offset
         // receive the same gradient (likewise the rotation).
@@ -638,15 +638,15 @@ impl DualTrainer {
         let d = self.config.density.clone();
         let opacity_only = it <= self.config.static_opacity_only_iterations;
         if it < d.until_iter {
-            self.moving.stats.record(&grads, ns..ns + nm);
+            self.moving.stats.record(&grads_moving);
             if !opacity_only {
-                self.static_set.stats.record(&grads, 0..ns);
+                self.static_set.stats.record(&grads_static);
             }
         }
         let lr_static = self.learning_rates(it, !opacity_only);
         let lr_moving = self.learning_rates(it, true);
-        self.static_set.adam.step(&mut self.static_set.gaussians, &g_static, &lr_static);
-        self.moving.adam.step(&mut self.moving.gaussians, &g_moving, &lr_moving);
+        self.static_set.adam.step(&mut self.static_set.gaussians, g_static, &lr_static);
+        self.moving.adam.step(&mut self.moving.gaussians, g_moving, &lr_moving);
 
         if it < d.until_iter && it > d.from_iter && it.is_multiple_of(d.interval) {
             let params = d.densify_params(it, self.extent);

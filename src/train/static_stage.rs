@@ -165,7 +165,7 @@ impl GaussianTrainer {
             StepReport { iteration: it, loss: total, psnr: psnr(&image.color, &target), ..Default::default() };
 
         if it < d.until_iter {
-            self.stats.record(&grads, 0..self.gaussians.len());
+            self.stats.record(&grads);
         }
         let lrs = self.config.lr.rates(it, self.config.iterations, self.extent);
         self.adam.step(&mut self.gaussians, &grads.params, &lrs);
