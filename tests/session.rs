@@ -99,7 +99,7 @@ fn a_session_on_a_dataset_gives_the_stage_commands_result() {
     };
     let opened = open_recording(&data, &RecordingOptions::default()).expect("opens");
     let session = root.join("session");
-    let control = SessionControl { interrupt: &never, viz: &viz };
+    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu };
     let SessionOutcome::Finished { report, .. } =
         run_session(opened, reference, &session, &cfg, &control, &|_| {}).expect("session")
     else {
@@ -160,7 +160,7 @@ fn input_without_an_interaction_is_refused_by_name() {
     };
     let never = AtomicBool::new(false);
     let viz = Viz::disabled();
-    let control = SessionControl { interrupt: &never, viz: &viz };
+    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu };
     let err = run_session(opened, Reference::default(), &root.join("out"), &SessionConfig::cpu(0), &control, &|_| {})
         .err()
         .expect("no interaction is an error");
@@ -453,7 +453,7 @@ fn a_stream_failing_after_an_interaction_keeps_its_twin() {
     let tolerated = cfg.ingest.max_consecutive_errors;
     opened.source = Box::new(UnreadableTail { inner: opened.source, bad: tolerated + 4 });
     let (never, viz) = (AtomicBool::new(false), Viz::disabled());
-    let control = SessionControl { interrupt: &never, viz: &viz };
+    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu };
     let out = root.join("session");
     let reference = Reference { ground_truth: vec![data.clone()], ..Reference::default() };
     let err = run_session(opened, reference, &out, &cfg, &control, &|_| {}).err().expect("the stream's error");

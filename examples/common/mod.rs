@@ -47,7 +47,7 @@ pub fn run(
     cfg(&mut config);
     let ground_truth = Reference::recording_ground_truth(recording);
     let interrupt = std::sync::atomic::AtomicBool::new(false);
-    let control = SessionControl { interrupt: &interrupt, viz };
+    let control = SessionControl { interrupt: &interrupt, viz, backend: aim::render::Backend::Cpu };
     let reference = Reference { ground_truth, ..Default::default() };
     match run_session(opened, reference, out, &config, &control, on_event)? {
         SessionOutcome::Finished { parts, report } => {

@@ -26,6 +26,10 @@ pub struct Args {
     pub out: PathBuf,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Rasterizer of stage I and of node tracking's fitting steps: cpu, gpu or
+    /// auto (see `aim render --help`).
+    #[arg(long, default_value = "cpu")]
+    pub backend: aim::render::BackendChoice,
     #[command(flatten)]
     pub rerun: super::train_static::RerunArgs,
 }
@@ -88,9 +92,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let bar = super::progress::Progress::new("stage I", train_cfg.iterations);
     let never = AtomicBool::new(false);
     let viz = args.rerun.open()?;
+    let backend = aim::render::Backend::open(args.backend)?;
     let run_dir = args.out.join("static");
-    let setup =
-        RunSetup { run_dir: &run_dir, resume: false, init: None, arriving: None, backend: aim::render::Backend::Cpu };
+    let setup = RunSetup { run_dir: &run_dir, resume: false, init: None, arriving: None, backend: backend.clone() };
     let outcome = run_static(train_cfg, &train, &test, &setup, &never, &viz, |r| {
         bar.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians));
     })?;
@@ -124,12 +128,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dyn_cfg.iterations
     );
     let static_ply = args.out.join("static").join("static.ply");
-    let control = aim::train::dynamic_run::RunControl {
-        resume: false,
-        interrupt: &never,
-        viz: &viz,
-        backend: aim::render::Backend::Cpu,
-    };
+    let control = aim::train::dynamic_run::RunControl { resume: false, interrupt: &never, viz: &viz, backend };
     let Some((parts, metrics)) =
         super::train_dynamic::train_with_progress(&data, &static_ply, &args.out.join("dynamic"), dyn_cfg, &control)?
     else {

@@ -50,6 +50,10 @@ pub struct Args {
     /// reported. Without it, a replay never drops a frame.
     #[arg(long)]
     pub live: bool,
+    /// Rasterizer of stage I and of node tracking's fitting steps: cpu, gpu or
+    /// auto (see `aim render --help`).
+    #[arg(long, default_value = "cpu")]
+    pub backend: aim::render::BackendChoice,
     #[command(flatten)]
     pub rerun: super::train_static::RerunArgs,
     /// A recording's files and detector (ignored for datasets).
@@ -89,7 +93,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let interrupt = super::progress::interrupt_on_ctrl_c();
     let viz = args.rerun.open()?;
-    let control = SessionControl { interrupt: &interrupt, viz: &viz };
+    let control =
+        SessionControl { interrupt: &interrupt, viz: &viz, backend: aim::render::Backend::open(args.backend)? };
     let stage_one = super::progress::Progress::new("stage I", cfg.stage_one.iterations);
     let stage_two = super::progress::Progress::new("stage II", cfg.stage_two.iterations);
     let on_event = |e: SessionEvent| match e {

@@ -294,6 +294,8 @@ pub struct SessionControl<'a> {
     /// Raised (Ctrl-C): the running stage checkpoints and the session stops.
     pub interrupt: &'a AtomicBool,
     pub viz: &'a Viz,
+    /// The rasterizer stage I and node tracking's fitting steps train with.
+    pub backend: crate::render::Backend,
 }
 
 /// What a session reports as it goes (from the router and the workers).
@@ -818,7 +820,7 @@ impl<'a> InteractionWorker<'a> {
                 resume: false,
                 init: cfg.room.as_ref().map(|r| &r.points),
                 arriving: arriving.as_ref(),
-                backend: crate::render::Backend::Cpu,
+                backend: control.backend.clone(),
             };
             run_static(
                 cfg.stage_one.clone(),
@@ -879,7 +881,7 @@ impl<'a> InteractionWorker<'a> {
             resume: false,
             interrupt: control.interrupt,
             viz: control.viz,
-            backend: crate::render::Backend::Cpu,
+            backend: control.backend.clone(),
         };
         let mut hand_out_to_articulation_s = None;
         let outcome = run_dynamic(
