@@ -26,6 +26,11 @@ var<workgroup> batch: array<f32, 640>;
 var<workgroup> batch_ids: array<u32, 64>;
 var<workgroup> sums: array<f32, 2560>;
 var<workgroup> last_max: atomic<u32>;
+// Whether any pixel of the tile took a contribution from the current Gaussian:
+// most of a tile's list reaches few of its pixels, and one that reaches none
+// skips the reduction (two barriers instead of ten).
+var<workgroup> any_pixel: atomic<u32>;
+var<workgroup> any_snapshot: u32;
 var<workgroup> last_snapshot: u32;
 var<workgroup> range_start: u32;
 
@@ -53,6 +58,7 @@ fn main(
     let pixel = py * frame.image.x + px;
     if lid == 0u {
         atomicStore(&last_max, 0u);
+        atomicStore(&any_pixel, 0u);
         range_start = ranges[2u * tile];
     }
     workgroupBarrier();
@@ -132,6 +138,7 @@ fn main(
                         m[7] = grad_color.y * w;
                         m[8] = grad_color.z * w;
                         m[9] = grad_depth * w;
+                        atomicStore(&any_pixel, 1u);
                     }
                 }
             }
@@ -139,6 +146,12 @@ fn main(
                 sums[q * 256u + lid] = m[q];
             }
             workgroupBarrier();
+            if lid == 0u {
+                any_snapshot = atomicExchange(&any_pixel, 0u);
+            }
+            if workgroupUniformLoad(&any_snapshot) == 0u {
+                continue;
+            }
             for (var stride = 128u; stride > 0u; stride >>= 1u) {
                 if lid < stride {
                     for (var q = 0u; q < MOMENTS; q++) {

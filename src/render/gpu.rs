@@ -107,8 +107,6 @@ pub struct GpuRender {
     /// Row-major RGB (background included), alpha, accumulated depth, final
     /// transmittance and last composited list position, as the CPU backend's.
     pub image: RasterOutput,
-    /// Gaussian-tile pairs rendered (the work measure of binning).
-    pub intersections: u32,
     /// Rows of each rendered set.
     set_sizes: Vec<usize>,
     background: BackgroundPixels,
@@ -204,8 +202,7 @@ impl GpuContext {
             Some(img) => BackgroundPixels::Image(img),
             None => BackgroundPixels::Uniform(options.background),
         };
-        let uniform =
-            frame_uniform(sets, &projection, prep.sh_degree, options.background, &background, [tiles_x, tiles_y]);
+        let uniform = frame_uniform(sets, &projection, prep.sh_degree, &background, [tiles_x, tiles_y]);
         let frame = self.uniform(&uniform);
         let params = self.storage_init("params", bytemuck::cast_slice(&param_buffer(sets)));
 
@@ -291,7 +288,6 @@ impl GpuContext {
             width,
             height,
             image,
-            intersections: total,
             set_sizes,
             background,
             frame,
@@ -599,8 +595,7 @@ fn frame_uniform(
     sets: &[&GaussianSet],
     cam: &ProjectionCamera,
     sh_degree: u32,
-    background: Vec3,
-    pixels: &BackgroundPixels,
+    background: &BackgroundPixels,
     [tiles_x, tiles_y]: [u32; 2],
 ) -> FrameUniform {
     let n: usize = sets.iter().map(|s| s.len()).sum();
@@ -613,7 +608,11 @@ fn frame_uniform(
         at += widths.width(*group) * n;
     }
     let (lim_x, lim_y) = cam.limits();
-    let image_flag = matches!(pixels, BackgroundPixels::Image(_)) as u32 as f32;
+    // w = 1: the kernel reads the per-pixel background image instead.
+    let background = match background {
+        BackgroundPixels::Uniform(c) => c.extend(0.0),
+        BackgroundPixels::Image(_) => glam::Vec4::new(0.0, 0.0, 0.0, 1.0),
+    };
     FrameUniform {
         rotation: [
             cam.rot.x_axis.extend(0.0).into(),
@@ -624,7 +623,7 @@ fn frame_uniform(
         position: cam.position.extend(0.0).into(),
         intrinsics: [cam.fx, cam.fy, cam.cx, cam.cy],
         limits: [lim_x, lim_y, 0.0, 0.0],
-        background: background.extend(image_flag).into(),
+        background: background.into(),
         image: [cam.width, cam.height, tiles_x, tiles_y],
         sizes: [n as u32, sh_degree, widths.width(ParamGroup::ShRest) as u32, 0],
         offsets: [offsets[0], offsets[1], offsets[2], offsets[3]],
