@@ -494,10 +494,11 @@ fn log_tracked(viz: &Viz, tracker: &NodeTracker, frames: &[TrainView]) {
     });
     if let Some(frame) = nearest {
         let bg = glam::Vec3::from(tracker.config.eval_background);
-        let r = crate::render::render(&tracker.deformed_at(t), &frame.camera, &frame.render_options(bg));
+        let r = tracker.backend.render(&tracker.deformed_at(t), &frame.camera, &frame.render_options(bg));
+        let (w, h) = (r.width(), r.height());
         viz.camera("stage2/preview", &frame.camera);
-        viz.image_rgb("stage2/preview/render", r.width, r.height, &r.image.color);
-        viz.image_rgb("stage2/preview/frame", r.width, r.height, &frame.target(bg));
+        viz.image_rgb("stage2/preview/render", w, h, &r.image().color);
+        viz.image_rgb("stage2/preview/frame", w, h, &frame.target(bg));
     }
 }
 

@@ -29,7 +29,7 @@ use super::views::TrainView;
 use crate::error::{Error, Result};
 use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::project::{project_one, ProjectionCamera};
-use crate::render::{crop, region_rows, render, render_region};
+use crate::render::{crop, region_rows};
 use crate::splat::GaussianSet;
 
 mod contact;
@@ -1466,8 +1466,8 @@ impl NodeTracker {
             .iter()
             .map(|v| {
                 let target = v.target(bg);
-                let r = render(&without, &v.camera, &v.render_options(bg));
-                let base = ViewResiduals::new(pixel_residuals(&r.image.color, &target, cap));
+                let r = self.backend.render(&without, &v.camera, &v.render_options(bg));
+                let base = ViewResiduals::new(pixel_residuals(&r.image().color, &target, cap));
                 (target, base)
             })
             .collect();
@@ -1483,11 +1483,11 @@ impl NodeTracker {
                         let sum = match footprint(&g, &v.camera, 0, in_part) {
                             None => base.sum,
                             Some(region) => {
-                                let r = render_region(&g, &v.camera, region, &v.render_options(bg));
+                                let r = self.backend.render_region(&g, &v.camera, region, &v.render_options(bg));
                                 base.sum_with(
                                     w,
                                     region,
-                                    &pixel_residuals(&r.image.color, &crop(target, w, 3, region), cap),
+                                    &pixel_residuals(&r.image().color, &crop(target, w, 3, region), cap),
                                 )
                             }
                         };
@@ -1820,7 +1820,7 @@ impl NodeTracker {
                 let at = self.interpolated(&parts.poses, t, NodePose::lerp);
                 let poses = assigned.node_poses(&self.node_centres, &at);
                 let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
-                render(&g, &v.camera, &v.render_options(bg)).image.color
+                self.backend.render(&g, &v.camera, &v.render_options(bg)).image().color.clone()
             })
             .collect()
     }
@@ -1833,8 +1833,8 @@ impl NodeTracker {
             .iter()
             .map(|v| {
                 let g = self.revealed.with(self.deformed_at(v.time.unwrap_or(0.0)));
-                let r = render(&g, &v.camera, &v.render_options(bg));
-                psnr(&r.image.color, &v.target(bg))
+                let r = self.backend.render(&g, &v.camera, &v.render_options(bg));
+                psnr(&r.image().color, &v.target(bg))
             })
             .sum();
         sum / views.len().max(1) as f32
@@ -2220,7 +2220,7 @@ mod tests {
 
     use super::*;
     use crate::camera::{Camera, Intrinsics};
-    use crate::render::{backward, RenderOptions};
+    use crate::render::{backward, render, RenderOptions};
     use crate::splat::logit;
 
     /// A few large, overlapping Gaussians in front of a small camera, bound to two

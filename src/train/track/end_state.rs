@@ -19,7 +19,6 @@ use glam::{DMat3, DQuat, DVec3, Vec3};
 
 use super::{evenly_spread, pixel_residuals, residuals_where_changed, NodePose, NodeTracker, TrackedParts};
 use crate::motion::Rigid;
-use crate::render::render;
 use crate::train::views::TrainView;
 
 /// End-state views each candidate node's residual is measured on.
@@ -320,10 +319,11 @@ impl NodeTracker {
         let n = self.node_centres.len();
         let mut seen: Vec<Vec<f32>> = vec![Vec::new(); n];
         for v in views {
-            let r = render(&g, &v.camera, &v.render_options(bg));
+            let view = self.backend.render(&g, &v.camera, &v.render_options(bg));
+            let r = view.image();
             let target = v.target(bg);
             let depth = r.expected_depth();
-            let w = r.width as usize;
+            let (w, h) = (view.width() as usize, view.height());
             // The pixel where each of the node's Gaussians is the visible surface.
             let visible: Vec<(usize, usize)> = self
                 .binding
@@ -332,16 +332,16 @@ impl NodeTracker {
                 .filter(|(_, &k)| parts.node_part[k as usize] == label)
                 .filter_map(|(i, &k)| {
                     let (x, y, z) = v.camera.project(g.mean(i))?;
-                    if x < 0.0 || y < 0.0 || x >= w as f32 || y >= r.height as f32 {
+                    if x < 0.0 || y < 0.0 || x >= w as f32 || y >= h as f32 {
                         return None;
                     }
                     let px = y as usize * w + x as usize;
                     // The surface within 2 % of the object or two pixels' width at that depth.
                     let tolerance = tolerance.max(2.0 * z / v.camera.intrinsics.fx);
-                    (r.image.alpha[px] >= 0.5 && (depth[px] - z).abs() <= tolerance).then_some((k as usize, px))
+                    (r.alpha[px] >= 0.5 && (depth[px] - z).abs() <= tolerance).then_some((k as usize, px))
                 })
                 .collect();
-            let pixel = |px: usize| (&r.image.color[3 * px..3 * px + 3], &target[3 * px..3 * px + 3]);
+            let pixel = |px: usize| (&r.color[3 * px..3 * px + 3], &target[3 * px..3 * px + 3]);
             let mut gain = vec![1.0f32; n];
             if relit {
                 let (mut xy, mut xx) = (vec![0.0f32; n], vec![0.0f32; n]);
@@ -755,8 +755,8 @@ mod tests {
 
     use super::*;
     use crate::camera::{Camera, Intrinsics};
-    use crate::render::Render;
     use crate::render::RenderOptions;
+    use crate::render::{render, Render};
     use crate::splat::{logit, GaussianSet};
     use crate::train::dynamic_stage::DynamicConfig;
 
