@@ -26,8 +26,8 @@ pub struct Args {
     pub out: PathBuf,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Rasterizer of stage I and of node tracking's fitting steps: cpu, gpu or
-    /// auto (see `aim render --help`).
+    /// Where stages I and II render (and the paper preset's deformation network
+    /// runs): cpu, gpu or auto (see `aim render --help`).
     #[arg(long, default_value = "cpu")]
     pub backend: aim::render::BackendChoice,
     #[command(flatten)]

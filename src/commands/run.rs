@@ -50,8 +50,8 @@ pub struct Args {
     /// reported. Without it, a replay never drops a frame.
     #[arg(long)]
     pub live: bool,
-    /// Rasterizer of stage I and of node tracking's fitting steps: cpu, gpu or
-    /// auto (see `aim render --help`).
+    /// Where stages I and II render (and the paper preset's deformation network
+    /// runs): cpu, gpu or auto (see `aim render --help`).
     #[arg(long, default_value = "cpu")]
     pub backend: aim::render::BackendChoice,
     #[command(flatten)]

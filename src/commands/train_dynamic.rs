@@ -36,7 +36,8 @@ pub struct Args {
     /// Continue from OUT/checkpoint.bin (written every `checkpoint_interval` iterations and on Ctrl-C).
     #[arg(long)]
     pub resume: bool,
-    /// Rasterizer of node tracking's fitting steps: cpu, gpu or auto (see `aim render --help`).
+    /// Where stage II renders (and the paper preset's deformation network runs):
+    /// cpu, gpu or auto (see `aim render --help`).
     #[arg(long, default_value = "cpu")]
     pub backend: aim::render::BackendChoice,
     #[command(flatten)]

@@ -172,6 +172,10 @@ impl GpuContext {
         Ok(Self { device, queue, info, kernels })
     }
 
+    pub(crate) fn device(&self) -> &wgpu::Device {
+        &self.device
+    }
+
     /// The adapter in words: name, type and API.
     pub fn describe(&self) -> String {
         format!("{} ({:?}, {:?})", self.info.name, self.info.device_type, self.info.backend)
@@ -402,11 +406,11 @@ impl GpuContext {
         grads
     }
 
-    fn encoder(&self) -> wgpu::CommandEncoder {
+    pub(crate) fn encoder(&self) -> wgpu::CommandEncoder {
         self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None })
     }
 
-    fn uniform<T: Pod>(&self, value: &T) -> wgpu::Buffer {
+    pub(crate) fn uniform<T: Pod>(&self, value: &T) -> wgpu::Buffer {
         self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: None,
             contents: bytemuck::bytes_of(value),
@@ -415,7 +419,7 @@ impl GpuContext {
     }
 
     /// A zeroed storage buffer of `bytes` (at least one word: bindings cannot be empty).
-    fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+    pub(crate) fn storage(&self, label: &str, bytes: u64) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: bytes.max(4).next_multiple_of(4),
@@ -424,7 +428,7 @@ impl GpuContext {
         })
     }
 
-    fn storage_init(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {
+    pub(crate) fn storage_init(&self, label: &str, contents: &[u8]) -> wgpu::Buffer {
         if contents.is_empty() {
             return self.storage(label, 4);
         }
@@ -447,7 +451,7 @@ impl GpuContext {
         self.dispatch_bound(enc, kernel, &bound, groups_1d(count));
     }
 
-    fn dispatch_bound(
+    pub(crate) fn dispatch_bound(
         &self,
         enc: &mut wgpu::CommandEncoder,
         kernel: &wgpu::ComputePipeline,
@@ -563,13 +567,13 @@ impl GpuContext {
         self.read_words(enc, ranges).into_iter().map(|b| bytemuck::cast_slice(&b).to_vec()).collect()
     }
 
-    fn read_f32s(&self, enc: wgpu::CommandEncoder, ranges: &[(&wgpu::Buffer, u64, u64)]) -> Vec<Vec<f32>> {
+    pub(crate) fn read_f32s(&self, enc: wgpu::CommandEncoder, ranges: &[(&wgpu::Buffer, u64, u64)]) -> Vec<Vec<f32>> {
         self.read_words(enc, ranges).into_iter().map(|b| bytemuck::cast_slice(&b).to_vec()).collect()
     }
 }
 
 /// Workgroups for `count` threads of a 256-wide 1D kernel, as a 2D grid.
-fn groups_1d(count: u32) -> (u32, u32) {
+pub(crate) fn groups_1d(count: u32) -> (u32, u32) {
     let blocks = count.div_ceil(GROUP);
     if blocks == 0 {
         return (0, 0);
@@ -631,27 +635,38 @@ fn frame_uniform(
     }
 }
 
+/// A WGSL module compiled for `device`.
+pub(crate) fn shader_module(device: &wgpu::Device, name: &str, source: &str) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(name),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    })
+}
+
+/// The compute pipeline of `module`'s entry point `entry`, its bind group
+/// layout derived from what the entry point uses.
+pub(crate) fn compute_pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    entry: &str,
+) -> wgpu::ComputePipeline {
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry),
+        layout: None,
+        module,
+        entry_point: Some(entry),
+        compilation_options: Default::default(),
+        cache: None,
+    })
+}
+
 impl Kernels {
     fn compile(device: &wgpu::Device) -> Self {
         const COMMON: &str = include_str!("../../shaders/common.wgsl");
         const GAUSSIAN: &str = include_str!("../../shaders/gaussian.wgsl");
         const SH: &str = include_str!("../../shaders/sh.wgsl");
-        let module = |name: &str, parts: &[&str]| {
-            device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(name),
-                source: wgpu::ShaderSource::Wgsl(parts.concat().into()),
-            })
-        };
-        let pipeline = |module: &wgpu::ShaderModule, entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: None,
-                module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        let module = |name: &str, parts: &[&str]| shader_module(device, name, &parts.concat());
+        let pipeline = |module: &wgpu::ShaderModule, entry: &str| compute_pipeline(device, module, entry);
         let project = module("project", &[COMMON, GAUSSIAN, SH, include_str!("../../shaders/project.wgsl")]);
         let sort = module("sort", &[COMMON, include_str!("../../shaders/sort.wgsl")]);
         let scan = module("scan", &[COMMON, include_str!("../../shaders/scan.wgsl")]);

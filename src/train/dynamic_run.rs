@@ -218,6 +218,9 @@ fn run_dual_field(
     } else {
         (DualTrainer::new(cfg, crate::splat::ply::read_ply(run.static_ply)?, &views)?, 0.0)
     };
+    trainer.backend = control.backend.clone();
+    trainer.field_device = crate::deform::FieldDevice::of(&control.backend);
+    tracing::info!(backend = trainer.backend.describe(), "stage II (dual field)");
     let started = Instant::now();
     let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();
     let (iterations, interval) = (trainer.config.iterations, trainer.config.checkpoint_interval);

@@ -15,7 +15,7 @@ use crate::error::{Error, Result};
 use crate::motion::{
     extract_joint, kmeans_rigid_parts, segment_rigid_parts, JointEstimate, RansacConfig, Rigid, Trajectories,
 };
-use crate::render::{backward_sets, render, render_sets, Gradients, RenderOptions};
+use crate::render::{render, Gradients, RenderOptions};
 use crate::splat::{sigmoid, GaussianSet};
 use crate::train::config::{DensityConfig, LrConfig, Preset, StageConfig};
 use crate::train::density::{densify_and_prune, remove, reset_opacity, DensityStats, OPACITY_RESET_VALUE};
@@ -355,6 +355,12 @@ pub(crate) fn require_times(motion: &[TrainView]) -> Result<()> {
 /// a stage II run (what a checkpoint holds).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct DualTrainer {
+    /// The rasterizer of the training step (not saved: a run may resume on another).
+    #[serde(skip)]
+    pub backend: crate::render::Backend,
+    /// Where the deformation network runs (the backend's device).
+    #[serde(skip)]
+    pub field_device: crate::deform::FieldDevice,
     pub config: DynamicConfig,
     pub static_set: OptimizedSet,
     pub moving: OptimizedSet,
@@ -508,6 +514,8 @@ impl DualTrainer {
         let net = DeformNet::new(config.deform.clone(), config.seed);
         let net_adam = AdamBuffer::zeros(net.parameter_count());
         Self {
+            backend: crate::render::Backend::Cpu,
+            field_device: crate::deform::FieldDevice::Cpu,
             // The scene's extent from the scan, as stage I takes it (the motion video
             // circles closer or farther); the motion cameras when there is no scan.
             extent: camera_extent(if views.start.is_empty() { &views.motion } else { &views.start }),
@@ -595,19 +603,19 @@ impl DualTrainer {
         let deforming = it > self.config.warmup_iterations;
         let nm = self.moving.gaussians.len();
         let mut moving = self.moving.gaussians.clone();
-        let deform = deforming.then(|| self.net.forward(&moving.means, network_time(t)));
+        let deform = deforming.then(|| self.net.forward_on(&self.field_device, &moving.means, network_time(t)));
         if let Some(d) = &deform {
             d.apply(&mut moving);
         }
         // Both sets rendered as one scene, each getting its own gradients.
         let sets = [&self.static_set.gaussians, &moving];
         let whole = [0, 0, view.camera.width(), view.camera.height()];
-        let r = render_sets(&sets, &view.camera, whole, &RenderOptions::uniform(bg));
+        let r = self.backend.render_sets(&sets, &view.camera, whole, &RenderOptions::uniform(bg));
         let target = view.target(bg);
-        let loss =
-            loss_and_grad(&r.image.color, &target, r.width as usize, r.height as usize, self.config.lambda_dssim);
+        let (w, h) = (r.width() as usize, r.height() as usize);
+        let loss = loss_and_grad(&r.image().color, &target, w, h, self.config.lambda_dssim);
         let [grads_static, grads_moving]: [Gradients; 2] =
-            backward_sets(&sets, &r, &loss.grad, None, None).try_into().expect("one per set");
+            self.backend.backward_sets(&sets, &r, &loss.grad, None, None).try_into().expect("one per set");
         let (g_static, g_moving) = (&grads_static.params, &grads_moving.params);
 
         // The deformed mean is mean + d(sg(mean)): the canonical mean and the offset
@@ -682,7 +690,7 @@ impl DualTrainer {
         DynamicStep {
             iteration: it,
             loss: loss.loss,
-            psnr: psnr(&r.image.color, &target),
+            psnr: psnr(&r.image().color, &target),
             static_count: self.static_set.gaussians.len(),
             moving_count: self.moving.gaussians.len(),
             sdmd_moved,

@@ -9,6 +9,10 @@
 //! written by hand over sgemm (matrixmultiply), in parallel over row blocks;
 //! the input is not differentiated (stop-gradient on the means, fixed time).
 
+pub mod gpu;
+
+use std::sync::Arc;
+
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -41,11 +45,11 @@ impl DeformConfig {
     fn time_dims(&self) -> usize {
         1 + 2 * self.time_frequencies
     }
-    fn input_dims(&self) -> usize {
+    pub(crate) fn input_dims(&self) -> usize {
         self.xyz_dims() + self.time_dims()
     }
     /// Layer index after which the encoded input is concatenated again.
-    fn skip(&self) -> usize {
+    pub(crate) fn skip(&self) -> usize {
         self.depth / 2
     }
 }
@@ -63,17 +67,17 @@ fn encode(x: &[f32], freqs: usize, out: &mut Vec<f32>) {
 /// One dense layer's place in the flat parameter vector: weights (in x out,
 /// row-major) then biases (out).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-struct Layer {
-    offset: usize,
-    inputs: usize,
-    outputs: usize,
+pub(crate) struct Layer {
+    pub(crate) offset: usize,
+    pub(crate) inputs: usize,
+    pub(crate) outputs: usize,
 }
 
 impl Layer {
-    fn weights(&self) -> std::ops::Range<usize> {
+    pub(crate) fn weights(&self) -> std::ops::Range<usize> {
         self.offset..self.offset + self.inputs * self.outputs
     }
-    fn biases(&self) -> std::ops::Range<usize> {
+    pub(crate) fn biases(&self) -> std::ops::Range<usize> {
         let b = self.offset + self.inputs * self.outputs;
         b..b + self.outputs
     }
@@ -124,8 +128,15 @@ fn gemm(a: &[f32], a_t: bool, b: &[f32], b_t: bool, c: &mut [f32], m: usize, k: 
 /// Rows per parallel block.
 const BLOCK: usize = 512;
 
-/// Forward activations kept for the backward pass.
-pub struct DeformCache {
+/// Forward activations kept for the backward pass, where the forward pass ran.
+pub struct DeformCache(CachedOn);
+
+enum CachedOn {
+    Cpu(CpuActivations),
+    Gpu(Arc<gpu::GpuDeformNet>, gpu::GpuDeformCache),
+}
+
+struct CpuActivations {
     n: usize,
     /// What the heads' outputs were multiplied by (t with `zero_at_start`, else 1).
     output_scale: f32,
@@ -133,6 +144,33 @@ pub struct DeformCache {
     input: Vec<f32>,
     /// Post-ReLU output of every hidden layer.
     hidden: Vec<Vec<f32>>,
+}
+
+/// Where the network runs: the CPU, or a GPU backend's device.
+#[derive(Clone, Default)]
+pub enum FieldDevice {
+    #[default]
+    Cpu,
+    Gpu(Arc<gpu::GpuDeformNet>),
+}
+
+impl FieldDevice {
+    /// `backend`'s device: its GPU (the network's kernels compiled for it), or the CPU.
+    pub fn of(backend: &crate::render::Backend) -> Self {
+        match backend {
+            crate::render::Backend::Cpu => FieldDevice::Cpu,
+            crate::render::Backend::Gpu(ctx) => FieldDevice::Gpu(Arc::new(gpu::GpuDeformNet::new(ctx.clone()))),
+        }
+    }
+}
+
+impl std::fmt::Debug for FieldDevice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            FieldDevice::Cpu => "cpu",
+            FieldDevice::Gpu(_) => "gpu",
+        })
+    }
 }
 
 /// Offsets for N points at one time.
@@ -194,6 +232,20 @@ impl DeformNet {
         self.params.len()
     }
 
+    /// The hidden layers, then the position and rotation heads.
+    pub(crate) fn layout(&self) -> (&[Layer], Layer, Layer) {
+        (&self.layers, self.head_xyz, self.head_rot)
+    }
+
+    /// What the heads' outputs are multiplied by at time `t`.
+    pub(crate) fn output_scale(&self, t: f32) -> f32 {
+        if self.config.zero_at_start {
+            t
+        } else {
+            1.0
+        }
+    }
+
     /// The encoded network input of `means` (N x 3) at time `t`.
     fn encode_inputs(&self, means: &[f32], t: f32) -> Vec<f32> {
         let d_in = self.config.input_dims();
@@ -251,7 +303,7 @@ impl DeformNet {
             }
             out
         };
-        let output_scale = if self.config.zero_at_start { t } else { 1.0 };
+        let output_scale = self.output_scale(t);
         let scaled = |mut v: Vec<f32>| {
             if output_scale != 1.0 {
                 v.iter_mut().for_each(|x| *x *= output_scale);
@@ -260,12 +312,34 @@ impl DeformNet {
         };
         let d_xyz = scaled(head(&self.head_xyz));
         let d_rot = scaled(head(&self.head_rot));
-        DeformOutput { d_xyz, d_rot, cache: DeformCache { n, output_scale, input, hidden } }
+        DeformOutput {
+            d_xyz,
+            d_rot,
+            cache: DeformCache(CachedOn::Cpu(CpuActivations { n, output_scale, input, hidden })),
+        }
+    }
+
+    /// [`Self::forward`] on `device`; the output's backward pass runs there too.
+    pub fn forward_on(&self, device: &FieldDevice, means: &[f32], t: f32) -> DeformOutput {
+        match device {
+            FieldDevice::Cpu => self.forward(means, t),
+            FieldDevice::Gpu(kernels) => {
+                let (d_xyz, d_rot, cache) = kernels.forward(self, means, t);
+                DeformOutput { d_xyz, d_rot, cache: DeformCache(CachedOn::Gpu(kernels.clone(), cache)) }
+            }
+        }
     }
 
     /// Gradient of the loss with respect to every parameter, from dL/d(d_xyz)
     /// and dL/d(d_rot) of the forward pass that produced `cache`.
-    pub fn backward<'a>(&self, cache: &DeformCache, grad_xyz: &'a [f32], grad_rot: &'a [f32]) -> Vec<f32> {
+    pub fn backward(&self, cache: &DeformCache, grad_xyz: &[f32], grad_rot: &[f32]) -> Vec<f32> {
+        match &cache.0 {
+            CachedOn::Cpu(activations) => self.backward_cpu(activations, grad_xyz, grad_rot),
+            CachedOn::Gpu(kernels, cache) => kernels.backward(self, cache, grad_xyz, grad_rot),
+        }
+    }
+
+    fn backward_cpu<'a>(&self, cache: &CpuActivations, grad_xyz: &'a [f32], grad_rot: &'a [f32]) -> Vec<f32> {
         let n = cache.n;
         let (w, d_in) = (self.config.width, self.config.input_dims());
         assert_eq!(grad_xyz.len(), 3 * n);
