@@ -159,6 +159,14 @@ impl View {
         }
     }
 
+    /// The images, the view consumed.
+    pub fn into_image(self) -> RasterOutput {
+        match self {
+            View::Cpu(r) => r.image,
+            View::Gpu(r) => r.image,
+        }
+    }
+
     /// The colour image as 8-bit RGB.
     pub fn to_rgb8(&self) -> image::RgbImage {
         self.image().to_rgb8(self.width(), self.height())

@@ -294,7 +294,7 @@ pub struct SessionControl<'a> {
     /// Raised (Ctrl-C): the running stage checkpoints and the session stops.
     pub interrupt: &'a AtomicBool,
     pub viz: &'a Viz,
-    /// The rasterizer stage I and node tracking's fitting steps train with.
+    /// The backend stages I and II render with (see `RunControl::backend`).
     pub backend: crate::render::Backend,
 }
 

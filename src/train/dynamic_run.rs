@@ -46,7 +46,7 @@ pub struct RunControl<'a> {
     /// Rerun log: scalars (every 10 iterations, or every tracked segment); the
     /// sets at t = 0, 0.5, 1 at every checkpoint; the parts at the end.
     pub viz: &'a Viz,
-    /// The rasterizer node tracking's fitting steps render with.
+    /// The backend stage II renders with (and the dual field runs its network on).
     pub backend: crate::render::Backend,
 }
 

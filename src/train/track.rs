@@ -1820,7 +1820,7 @@ impl NodeTracker {
                 let at = self.interpolated(&parts.poses, t, NodePose::lerp);
                 let poses = assigned.node_poses(&self.node_centres, &at);
                 let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
-                self.backend.render(&g, &v.camera, &v.render_options(bg)).image().color.clone()
+                self.backend.render(&g, &v.camera, &v.render_options(bg)).into_image().color
             })
             .collect()
     }
