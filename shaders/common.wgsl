@@ -56,6 +56,13 @@ fn sigmoid(x: f32) -> f32 {
     return 1.0 / (1.0 + exp(-x));
 }
 
+// The Gaussian's exponent at offset d = mean2d - pixel centre, conic (a, b, c):
+// -(a dx^2 + c dy^2) / 2 - b dx dy, in the CPU backend's order (raster.rs's lane
+// groups), so that both backends make the same skip decisions.
+fn gaussian_power(d: vec2<f32>, conic: vec3<f32>) -> f32 {
+    return fma(d.x, fma(-0.5 * conic.x, d.x, -conic.y * d.y), -0.5 * conic.z * d.y * d.y);
+}
+
 // exp(x) for x <= 0 with the CPU backend's polynomial (raster::exp_nonpositive),
 // so that both backends make the same alpha-threshold decisions.
 fn exp_nonpositive(x_in: f32) -> f32 {

@@ -1,6 +1,6 @@
 // The deformation field's element-wise stages (src/deform): the input encoding,
 // bias + ReLU, the heads' bias and output scale, and in the backward pass the
-// ReLU mask and the bias gradients (column sums).
+// ReLU mask and the bias gradients (column sums). The host prepends common.wgsl.
 
 struct Elementwise {
     rows: u32,
@@ -18,10 +18,6 @@ struct Elementwise {
 @group(0) @binding(1) var<storage, read> src: array<f32>;
 @group(0) @binding(2) var<storage, read_write> dst: array<f32>;
 
-fn index(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
-    return (wid.x + wid.y * nwg.x) * 256u + lid;
-}
-
 // One input row per point: [x, sin(2^k x), cos(2^k x) for k < F] for the mean,
 // then the same of the time (Deformable-3DGS's encoding). src = means.
 @compute @workgroup_size(256)
@@ -30,7 +26,7 @@ fn encode(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = index(wid, nwg, lid);
+    let i = flat_block(wid, nwg) * 256u + lid;
     if i >= e.rows {
         return;
     }
@@ -69,7 +65,7 @@ fn bias_relu(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = index(wid, nwg, lid);
+    let i = flat_block(wid, nwg) * 256u + lid;
     if i < e.rows * e.cols {
         dst[i] = max(dst[i] + src[e.offset + i % e.cols], 0.0);
     }
@@ -82,7 +78,7 @@ fn bias_scale(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = index(wid, nwg, lid);
+    let i = flat_block(wid, nwg) * 256u + lid;
     if i < e.rows * e.cols {
         dst[i] = (dst[i] + src[e.offset + i % e.cols]) * e.scale;
     }
@@ -95,7 +91,7 @@ fn relu_mask(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = index(wid, nwg, lid);
+    let i = flat_block(wid, nwg) * 256u + lid;
     if i < e.rows * e.cols && src[i] <= 0.0 {
         dst[i] = 0.0;
     }
@@ -108,7 +104,7 @@ fn column_sums(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let col = index(wid, nwg, lid);
+    let col = flat_block(wid, nwg) * 256u + lid;
     if col >= e.cols {
         return;
     }

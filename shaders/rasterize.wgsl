@@ -61,11 +61,7 @@ fn main(
             for (var j = 0u; j < count; j++) {
                 let o = j * SPLAT_STRIDE;
                 let d = vec2<f32>(batch[o], batch[o + 1u]) - centre;
-                let a = batch[o + 2u];
-                let bb = batch[o + 3u];
-                let c = batch[o + 4u];
-                // power = -(a dx^2 + c dy^2) / 2 - b dx dy, in the CPU backend's order.
-                let power = fma(d.x, fma(-0.5 * a, d.x, -bb * d.y), -0.5 * c * d.y * d.y);
+                let power = gaussian_power(d, vec3<f32>(batch[o + 2u], batch[o + 3u], batch[o + 4u]));
                 if power > 0.0 {
                     continue;
                 }

@@ -106,11 +106,8 @@ fn main(
             if k < last {
                 let o = j * SPLAT_STRIDE;
                 let d = vec2<f32>(batch[o], batch[o + 1u]) - centre;
-                let a = batch[o + 2u];
-                let bb = batch[o + 3u];
-                let c = batch[o + 4u];
                 let opacity = batch[o + 5u];
-                let power = fma(d.x, fma(-0.5 * a, d.x, -bb * d.y), -0.5 * c * d.y * d.y);
+                let power = gaussian_power(d, vec3<f32>(batch[o + 2u], batch[o + 3u], batch[o + 4u]));
                 if power <= 0.0 {
                     let gauss = exp_nonpositive(power);
                     let alpha = min(opacity * gauss, ALPHA_MAX);

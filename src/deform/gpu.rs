@@ -87,7 +87,8 @@ impl GpuDeformNet {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         let device = ctx.device();
         let matmul = shader_module(device, "matmul", include_str!("../../shaders/matmul.wgsl"));
-        let mlp = shader_module(device, "mlp", include_str!("../../shaders/mlp.wgsl"));
+        let mlp_source = [include_str!("../../shaders/common.wgsl"), include_str!("../../shaders/mlp.wgsl")].concat();
+        let mlp = shader_module(device, "mlp", &mlp_source);
         let pipeline = |module: &wgpu::ShaderModule, entry: &str| compute_pipeline(device, module, entry);
         Self {
             gemm: pipeline(&matmul, "main"),
