@@ -14,6 +14,10 @@ pub enum Error {
     /// A configuration value or argument that is out of range or unknown.
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// Input that is readable but holds nothing to learn from (nothing moved,
+    /// the hand never let go, no motion frames): the input, not the program, is at fault.
+    #[error("{0}")]
+    Unusable(String),
     #[error("{0}")]
     Other(String),
 }

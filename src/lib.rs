@@ -4,6 +4,7 @@
 //! One module per pipeline stage; data flows source -> frames -> trainer ->
 //! model snapshots -> analysis -> exports.
 
+pub mod batch;
 pub mod bench;
 pub mod camera;
 pub mod deform;

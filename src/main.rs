@@ -27,6 +27,8 @@ enum Command {
     Demo(commands::demo::Args),
     /// One session from a dataset's frames to the twin (stage I while the motion arrives, then stages II and III).
     Run(commands::run::Args),
+    /// Many captures, one per worker of a distributed engine (Ray, Kubernetes, Slurm, AWS Batch), or all in turn; --summary.
+    Batch(commands::batch::Args),
     /// Render a 3DGS PLY from a camera to a PNG.
     Render(commands::render::Args),
     /// Benchmarks that print JSON.
@@ -88,6 +90,8 @@ fn main() -> ExitCode {
         }
     }
     let result = match cli.command {
+        // Its exit code says what happened to the capture (docs/scale.md).
+        Command::Batch(args) => return ExitCode::from(commands::batch::run(args)),
         Command::Render(args) => commands::render::run(args),
         Command::Bench(b) => commands::bench::run(b),
         Command::Synth(args) => commands::synth::run(args),

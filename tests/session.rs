@@ -4,12 +4,13 @@
 //! code); input without an interaction, and input `aim run` cannot train on,
 //! get a message naming it and a non-zero exit.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::AtomicBool;
 
 use aim::stream::{run_session, Reference, SessionConfig, SessionControl, SessionOutcome};
-use aim::synth::dataset::{write_dataset, SynthConfig};
 use aim::synth::recording::{write_recording, RecordingConfig, RecordingSummary};
 use aim::train::dynamic_run::{run_dynamic, DynamicOutcome, RunControl, StageTwoInput};
 use aim::train::static_stage::{run_static, RunOutcome, RunSetup};
@@ -25,26 +26,12 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
-fn tiny_fridge(data: &Path) {
-    let cfg = SynthConfig {
-        resolution: 32,
-        scan_views: 6,
-        motion_frames: 12,
-        end_views: 2,
-        test_views: 1,
-        motion_test_every: 6,
-        samples_per_pixel: 1,
-        ..Default::default()
-    };
-    write_dataset(&aim::synth::object("fridge").expect("object"), data, &cfg, &|_, _| {}).expect("written");
-}
-
 /// A scratch folder `name` with the tiny fridge dataset in it (root, dataset), and
 /// the cpu presets with `seed` and the stages' iterations.
 fn tiny_fridge_session(name: &str, seed: u64, stage_one: u32, stage_two: u32) -> (PathBuf, PathBuf, SessionConfig) {
     let root = tmp(name);
     let data = root.join("data");
-    tiny_fridge(&data);
+    common::tiny_dataset("fridge", &data);
     let mut cfg = SessionConfig::cpu(seed);
     cfg.stage_one.iterations = stage_one;
     cfg.stage_two.iterations = stage_two;
@@ -99,7 +86,7 @@ fn a_session_on_a_dataset_gives_the_stage_commands_result() {
     };
     let opened = open_recording(&data, &RecordingOptions::default()).expect("opens");
     let session = root.join("session");
-    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu };
+    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu, resume: false };
     let SessionOutcome::Finished { report, .. } =
         run_session(opened, reference, &session, &cfg, &control, &|_| {}).expect("session")
     else {
@@ -138,7 +125,7 @@ fn aim() -> Command {
 fn input_without_an_interaction_is_refused_by_name() {
     let root = tmp("refused");
     let data = root.join("data");
-    tiny_fridge(&data);
+    common::tiny_dataset("fridge", &data);
     // Only the scan: the hand never comes, nothing moves.
     let frames = aim_capture::dataset::load_aim(&data, &aim_capture::dataset::LoadOptions { depth: false })
         .expect("loads")
@@ -160,7 +147,7 @@ fn input_without_an_interaction_is_refused_by_name() {
     };
     let never = AtomicBool::new(false);
     let viz = Viz::disabled();
-    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu };
+    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu, resume: false };
     let err = run_session(opened, Reference::default(), &root.join("out"), &SessionConfig::cpu(0), &control, &|_| {})
         .err()
         .expect("no interaction is an error");
@@ -208,7 +195,7 @@ fn input_without_an_interaction_is_refused_by_name() {
 fn aim_run_logs_the_session_to_rerun() {
     let root = tmp("rerun");
     let data = root.join("data");
-    tiny_fridge(&data);
+    common::tiny_dataset("fridge", &data);
     let rrd = root.join("session.rrd");
     let out = aim()
         .arg("run")
@@ -453,7 +440,7 @@ fn a_stream_failing_after_an_interaction_keeps_its_twin() {
     let tolerated = cfg.ingest.max_consecutive_errors;
     opened.source = Box::new(UnreadableTail { inner: opened.source, bad: tolerated + 4 });
     let (never, viz) = (AtomicBool::new(false), Viz::disabled());
-    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu };
+    let control = SessionControl { interrupt: &never, viz: &viz, backend: aim::render::Backend::Cpu, resume: false };
     let out = root.join("session");
     let reference = Reference { ground_truth: vec![data.clone()], ..Reference::default() };
     let err = run_session(opened, reference, &out, &cfg, &control, &|_| {}).err().expect("the stream's error");

@@ -176,6 +176,19 @@ pub struct ObjectRegion {
 }
 
 impl ObjectRegion {
+    /// The box with corners x0,y0,z0 and x1,y1,z1 (world coordinates, metres),
+    /// each min below its max.
+    pub fn from_corners(corners: &[f64]) -> std::result::Result<Self, String> {
+        match *corners {
+            [x0, y0, z0, x1, y1, z1] if x0 < x1 && y0 < y1 && z0 < z1 => {
+                Ok(ObjectRegion { min: [x0, y0, z0], max: [x1, y1, z1] })
+            }
+            _ => Err(format!(
+                "a region is x0,y0,z0,x1,y1,z1 with each min below its max (a box in world coordinates), got {corners:?}"
+            )),
+        }
+    }
+
     pub fn distance(&self, p: DVec3) -> f64 {
         let lo = DVec3::from_array(self.min);
         let hi = DVec3::from_array(self.max);

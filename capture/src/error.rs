@@ -23,4 +23,12 @@ impl Error {
     pub fn bad_file(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
         Error::BadFile { path: path.into(), message: message.into() }
     }
+
+    /// The file the error is about, if it is about one.
+    pub fn path(&self) -> Option<&std::path::Path> {
+        match self {
+            Error::Io { path, .. } | Error::BadFile { path, .. } => Some(path),
+            Error::Other(_) => None,
+        }
+    }
 }

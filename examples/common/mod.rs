@@ -3,9 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
-use aim::stream::{run_session, Reference, RoomSetup, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
-use aim_capture::recording::{open_recording, RecordingOptions};
-use aim_capture::undistort::UndistortConfig;
+use aim::stream::{open_input, run_session, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
+use aim_capture::recording::RecordingOptions;
 
 /// The recording named as the first argument, or the built-in synthetic fridge
 /// recording (`aim synth-recording fridge`) written under `scratch`; the output
@@ -40,15 +39,12 @@ pub fn run(
     on_event: &(dyn Fn(SessionEvent) + Sync),
 ) -> anyhow::Result<()> {
     // The frames undistorted as `aim run` trains on them (704 px, focal 300).
-    let undistort = UndistortConfig { width: 704, height: 704, focal: 300.0, upright: false };
-    let opened = open_recording(recording, &RecordingOptions { undistort, ..Default::default() })?;
+    let options = RecordingOptions { undistort: aim::stream::TRAIN_UNDISTORT, ..Default::default() };
     let mut config = SessionConfig::cpu(0);
-    config.room = Some(RoomSetup::for_recording(recording, &opened, &config)?);
+    let (opened, reference) = open_input(recording, &options, &mut config)?;
     cfg(&mut config);
-    let ground_truth = Reference::recording_ground_truth(recording);
     let interrupt = std::sync::atomic::AtomicBool::new(false);
-    let control = SessionControl { interrupt: &interrupt, viz, backend: aim::render::Backend::Cpu };
-    let reference = Reference { ground_truth, ..Default::default() };
+    let control = SessionControl { interrupt: &interrupt, viz, backend: aim::render::Backend::Cpu, resume: false };
     match run_session(opened, reference, out, &config, &control, on_event)? {
         SessionOutcome::Finished { parts, report } => {
             for (interaction, parts) in report.interactions.iter().zip(&parts) {

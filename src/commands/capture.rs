@@ -102,10 +102,6 @@ pub struct Common {
     focal: Option<f64>,
 }
 
-/// A recording's frames undistorted for training, before the object crop: the
-/// Aria RGB camera's full field at about its native sampling.
-pub const TRAIN_UNDISTORT: UndistortConfig = UndistortConfig { width: 704, height: 704, focal: 300.0, upright: false };
-
 /// Undistorted frames for the motion-window detection alone: small is enough.
 pub const INSPECT_UNDISTORT: UndistortConfig =
     UndistortConfig { width: 352, height: 352, focal: 150.0, upright: false };
@@ -114,15 +110,12 @@ impl Common {
     /// The recording's options, undistorting to `default` where no size or focal is given.
     pub fn options(&self, default: UndistortConfig) -> anyhow::Result<RecordingOptions> {
         let detector: DetectorKind = self.detector.parse().map_err(anyhow::Error::msg)?;
-        let region = match self.region.as_deref() {
-            None => None,
-            Some(&[x0, y0, z0, x1, y1, z1]) if x0 < x1 && y0 < y1 && z0 < z1 => {
-                Some(ObjectRegion { min: [x0, y0, z0], max: [x1, y1, z1] })
-            }
-            Some(r) => anyhow::bail!(
-                "--region takes x0,y0,z0,x1,y1,z1 with each min below its max (a box in world coordinates), got {r:?}"
-            ),
-        };
+        let region = self
+            .region
+            .as_deref()
+            .map(ObjectRegion::from_corners)
+            .transpose()
+            .map_err(|e| anyhow::anyhow!("--region: {e}"))?;
         let size = self.size.unwrap_or(default.width);
         let focal = self.focal.unwrap_or(default.focal);
         Ok(RecordingOptions {
@@ -199,7 +192,7 @@ pub fn run(c: Capture) -> anyhow::Result<()> {
             );
         }
         Capture::Crop { recording, frame, crop_size, object, common, out, camera_out } => {
-            let opts = common.options(TRAIN_UNDISTORT)?;
+            let opts = common.options(aim::stream::TRAIN_UNDISTORT)?;
             let f = cropped_frame(&recording, frame, object, &opts, crop_size, aim_capture::crop::DEFAULT_MARGIN)?;
             let mut bytes = Vec::new();
             image::DynamicImage::ImageRgba8((*f.image).clone())

@@ -1,6 +1,7 @@
 //! One file per subcommand: argument parsing and progress display only; the work
 //! is done by library functions.
 
+pub mod batch;
 pub mod bench;
 pub mod capture;
 pub mod demo;

@@ -4,17 +4,11 @@
 //! while the motion frames arrive, its stages II and III run when its
 //! after-phase is over.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::bail;
-
-use aim::eval::twin::has_ground_truth;
-use aim::stream::{run_session, Reference, RoomSetup, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
+use aim::stream::{open_input, run_session, SessionConfig, SessionControl, SessionEvent, SessionOutcome};
 use aim::train::config::{StageConfig, StaticConfig};
 use aim::train::dynamic_stage::DynamicConfig;
-use aim_capture::recording::{open_recording, RecordingOptions};
-use aim_capture::source::{dataset_layout, DatasetLayout};
-use aim_capture::Phase;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -50,6 +44,10 @@ pub struct Args {
     /// reported. Without it, a replay never drops a frame.
     #[arg(long)]
     pub live: bool,
+    /// Continue an interrupted or killed session in --out: each stage from its
+    /// checkpoint (same input and configuration; another configuration is refused).
+    #[arg(long)]
+    pub resume: bool,
     /// Where stages I and II render (and the paper preset's deformation network
     /// runs): cpu, gpu or auto (see `aim render --help`).
     #[arg(long, default_value = "cpu")]
@@ -62,9 +60,6 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if !args.input.exists() {
-        bail!("{}: no such file or folder", args.input.display());
-    }
     let mut cfg = SessionConfig::cpu(0);
     cfg.stage_one =
         StaticConfig::resolve(args.static_config.as_deref(), &args.preset, args.seed, args.static_iterations)?;
@@ -78,56 +73,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             cfg.stage_one = asked;
         }
     }
-    let (opened, reference) = match dataset_layout(&args.input) {
-        Some(layout) => {
-            let reference =
-                if layout == DatasetLayout::Aim { reference(&args.input, &cfg)? } else { Reference::default() };
-            (open_recording(&args.input, &RecordingOptions::default())?, reference)
-        }
-        None => {
-            let opened = open_recording(&args.input, &args.recording.options(super::capture::TRAIN_UNDISTORT)?)?;
-            cfg.room = Some(RoomSetup::for_recording(&args.input, &opened, &cfg)?);
-            let ground_truth = Reference::recording_ground_truth(&args.input);
-            (opened, Reference { ground_truth, ..Reference::default() })
-        }
-    };
+    let (opened, reference) =
+        open_input(&args.input, &args.recording.options(aim::stream::TRAIN_UNDISTORT)?, &mut cfg)?;
     let interrupt = super::progress::interrupt_on_ctrl_c();
     let viz = args.rerun.open()?;
-    let control =
-        SessionControl { interrupt: &interrupt, viz: &viz, backend: aim::render::Backend::open(args.backend)? };
-    let stage_one = super::progress::Progress::new("stage I", cfg.stage_one.iterations);
-    let stage_two = super::progress::Progress::new("stage II", cfg.stage_two.iterations);
-    let on_event = |e: SessionEvent| match e {
-        SessionEvent::Window(w) => println!("motion window: {w:?}"),
-        SessionEvent::StageOneStarted { interaction, object, views } => {
-            stage_one.restart();
-            println!("interaction {}: stage I starts on {views} frame(s) of object {object}", interaction + 1)
-        }
-        SessionEvent::StageOne(r) => {
-            stage_one.update(r.iteration, || format!("psnr {:.2} gaussians {}", r.psnr, r.gaussians))
-        }
-        SessionEvent::StageTwoStarted { interaction, motion, end } => {
-            stage_one.finish();
-            stage_two.restart();
-            println!(
-                "interaction {}: stages II and III on {motion} motion frames and {end} end-state frames",
-                interaction + 1
-            );
-        }
-        SessionEvent::StageTwo(s) => stage_two.update(s.iteration, || format!("psnr {:.2}", s.psnr)),
-        SessionEvent::Articulated { interaction, parts, hand_out_to_articulation_s } => {
-            stage_two.finish();
-            println!(
-                "interaction {}: {} moving part(s) and their joints{}; meshes and export follow",
-                interaction + 1,
-                parts.len(),
-                hand_out_to_articulation_s.map_or(String::new(), |s| format!(", {s:.1} s after hand-out"))
-            );
-        }
+    let control = SessionControl {
+        interrupt: &interrupt,
+        viz: &viz,
+        backend: aim::render::Backend::open(args.backend)?,
+        resume: args.resume,
     };
+    let progress = super::progress::SessionProgress::new();
+    let on_event = |e: SessionEvent| progress.on_event(e);
     match run_session(opened, reference, &args.out, &cfg, &control, &on_event)? {
         SessionOutcome::Finished { parts, report } => {
-            stage_two.finish();
+            progress.finish();
             for (interaction, parts) in report.interactions.iter().zip(&parts) {
                 println!(
                     "{} (object {}): stage I {} Gaussians, PSNR {:.2} dB; frames: {} scan, {} motion, {} after",
@@ -170,16 +130,4 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     Ok(())
-}
-
-/// An AiM dataset's held-out views and ground truth, for the metrics.
-fn reference(input: &Path, cfg: &SessionConfig) -> anyhow::Result<Reference> {
-    let test = |phase: Phase, width: u32| -> anyhow::Result<Vec<_>> {
-        Ok(aim::train::views::load_phase_views(input, phase, width, false)?.1)
-    };
-    Ok(Reference {
-        scan_test: test(Phase::Scan, cfg.stage_one.resolution)?,
-        motion_test: test(Phase::Motion, cfg.stage_two.resolution)?,
-        ground_truth: if has_ground_truth(input) { vec![input.to_path_buf()] } else { Vec::new() },
-    })
 }

@@ -21,7 +21,9 @@ use aim_capture::crop::ObjectCrop;
 use aim_capture::detect::{MotionEvent, ObjectRegion};
 use aim_capture::ingest::{motion_time, Ingest, IngestConfig, IngestStats, Message};
 use aim_capture::mps::{HandTracking, SemidensePoints, Trajectory};
-use aim_capture::recording::Opened;
+use aim_capture::recording::{open_recording, Opened, RecordingOptions};
+use aim_capture::source::{dataset_layout, DatasetLayout};
+use aim_capture::undistort::UndistortConfig;
 use aim_capture::{Frame, Phase};
 use serde::Serialize;
 
@@ -289,6 +291,48 @@ impl Reference {
     }
 }
 
+/// A recording's frames undistorted for training, before the object crop: the
+/// Aria RGB camera's full field at about its native sampling.
+pub const TRAIN_UNDISTORT: UndistortConfig = UndistortConfig { width: 704, height: 704, focal: 300.0, upright: false };
+
+/// Open a session's input: a dataset (AiM layout, nerfstudio, COLMAP; its
+/// held-out views and ground truth, when it has them, as the reference) or a
+/// recording read with `recording` (the object cut out of the room: `cfg.room`
+/// is set from its MPS points and object regions; its synthetic ground truth as
+/// the reference).
+pub fn open_input(input: &Path, recording: &RecordingOptions, cfg: &mut SessionConfig) -> Result<(Opened, Reference)> {
+    if !input.exists() {
+        return Err(Error::bad_file(input, "no such file or folder"));
+    }
+    match dataset_layout(input) {
+        Some(layout) => {
+            let reference = if layout == DatasetLayout::Aim {
+                let test = |phase: Phase, width: u32| -> Result<Vec<TrainView>> {
+                    Ok(crate::train::views::load_phase_views(input, phase, width, false)?.1)
+                };
+                Reference {
+                    scan_test: test(Phase::Scan, cfg.stage_one.resolution)?,
+                    motion_test: test(Phase::Motion, cfg.stage_two.resolution)?,
+                    ground_truth: if crate::eval::twin::has_ground_truth(input) {
+                        vec![input.to_path_buf()]
+                    } else {
+                        Vec::new()
+                    },
+                }
+            } else {
+                Reference::default()
+            };
+            Ok((open_recording(input, &RecordingOptions::default())?, reference))
+        }
+        None => {
+            let opened = open_recording(input, recording)?;
+            cfg.room = Some(RoomSetup::for_recording(input, &opened, cfg)?);
+            let ground_truth = Reference::recording_ground_truth(input);
+            Ok((opened, Reference { ground_truth, ..Reference::default() }))
+        }
+    }
+}
+
 /// Where a session stops early and what it logs to.
 pub struct SessionControl<'a> {
     /// Raised (Ctrl-C): the running stage checkpoints and the session stops.
@@ -296,6 +340,10 @@ pub struct SessionControl<'a> {
     pub viz: &'a Viz,
     /// The backend stages I and II render with (see `RunControl::backend`).
     pub backend: crate::render::Backend,
+    /// Continue each stage from its checkpoint in the session's folder, where
+    /// there is one (an interrupted or killed session run again on the same
+    /// input and configuration); a finished stage is then only written again.
+    pub resume: bool,
 }
 
 /// What a session reports as it goes (from the router and the workers).
@@ -307,12 +355,15 @@ pub enum SessionEvent<'a> {
         interaction: usize,
         object: usize,
         views: usize,
+        /// Its schedule's length (a resumed stage starts past 0).
+        iterations: u32,
     },
     StageOne(&'a StepReport),
     StageTwoStarted {
         interaction: usize,
         motion: usize,
         end: usize,
+        iterations: u32,
     },
     StageTwo(&'a DynamicStep),
     /// An interaction's parts and joints are known (its meshes and export follow),
@@ -665,7 +716,7 @@ pub fn run_session(
                 return Err(Error::Other(e));
             }
             let scanned: usize = scans.iter().map(|s| s.views.len()).sum();
-            return Err(Error::Other(format!(
+            return Err(Error::Unusable(format!(
                 "{source}: no interaction found ({scanned} scan frame(s), no hand-in): nothing moved, so there is no articulation to learn"
             )));
         }
@@ -814,10 +865,15 @@ impl<'a> InteractionWorker<'a> {
                     if arriving.is_some() { ", more arriving" } else { "" }
                 ),
             );
-            on_event(SessionEvent::StageOneStarted { interaction, object, views: scan.len() });
+            on_event(SessionEvent::StageOneStarted {
+                interaction,
+                object,
+                views: scan.len(),
+                iterations: cfg.stage_one.iterations,
+            });
             let setup = RunSetup {
                 run_dir: &static_dir,
-                resume: false,
+                resume: control.resume,
                 init: cfg.room.as_ref().map(|r| &r.points),
                 arriving: arriving.as_ref(),
                 backend: control.backend.clone(),
@@ -860,7 +916,12 @@ impl<'a> InteractionWorker<'a> {
                 counts.after
             ),
         );
-        on_event(SessionEvent::StageTwoStarted { interaction, motion: counts.motion, end: counts.after });
+        on_event(SessionEvent::StageTwoStarted {
+            interaction,
+            motion: counts.motion,
+            end: counts.after,
+            iterations: cfg.stage_two.iterations,
+        });
         let mut input = StageTwoInput {
             source: PathBuf::from(self.source),
             motion,
@@ -878,7 +939,7 @@ impl<'a> InteractionWorker<'a> {
             start_state = object_ply;
         }
         let run_control = RunControl {
-            resume: false,
+            resume: control.resume,
             interrupt: control.interrupt,
             viz: control.viz,
             backend: control.backend.clone(),
@@ -918,14 +979,14 @@ impl<'a> InteractionWorker<'a> {
 /// from the detected window (`aim_capture::ingest::motion_time`).
 fn timed_motion(frames: Vec<(f64, TrainView)>, events: &[MotionEvent], source: &str) -> Result<Vec<TrainView>> {
     if frames.is_empty() {
-        return Err(Error::Other(format!("{source}: no motion frames between hand-in and hand-out")));
+        return Err(Error::Unusable(format!("{source}: no motion frames between hand-in and hand-out")));
     }
     frames
         .into_iter()
         .map(|(t, mut v)| {
             if v.time.is_none() {
                 v.time = Some(motion_time(t, events).ok_or_else(|| {
-                    Error::Other(format!(
+                    Error::Unusable(format!(
                         "{source}: the hand never left the object (no hand-out after the hand-in), so the motion has no end to learn to"
                     ))
                 })?);

@@ -211,7 +211,7 @@ fn run_dual_field(
     let (mut trainer, elapsed_before) = if control.resume && checkpoint.exists() {
         let (t, elapsed) = load_checkpoint(&checkpoint)?;
         if t.config != cfg {
-            return Err(Error::bad_file(&checkpoint, "written with another configuration; rerun without --resume"));
+            return Err(other_configuration(&checkpoint));
         }
         tracing::info!(iteration = t.iteration, "resuming from {}", checkpoint.display());
         (t, elapsed)
@@ -305,7 +305,7 @@ fn run_node_track(
     let (mut tracker, elapsed_before) = if control.resume && checkpoint.exists() {
         let (t, elapsed) = load_track_checkpoint(&checkpoint)?;
         if t.config != cfg {
-            return Err(Error::bad_file(&checkpoint, "written with another configuration; rerun without --resume"));
+            return Err(other_configuration(&checkpoint));
         }
         tracing::info!(segments = t.segments_done, "resuming from {}", checkpoint.display());
         (t, elapsed)
@@ -454,6 +454,16 @@ fn node_tracking_error(dataset: &Path, tracker: &NodeTracker) -> Result<(Vec<Tra
 }
 
 const TRACK_CHECKPOINT_STAGE: &str = "stage II tracking";
+
+/// A checkpoint written with another configuration than the run's: refused as a
+/// configuration error (running again does not help; another configuration or a
+/// new run folder does).
+fn other_configuration(checkpoint: &Path) -> Error {
+    Error::Config(format!(
+        "{} was written with another configuration; resume with the same one, or rerun without --resume",
+        checkpoint.display()
+    ))
+}
 
 fn save_track_checkpoint(path: &Path, tracker: &NodeTracker, elapsed_s: f64) -> Result<()> {
     crate::train::checkpoint::save(path, TRACK_CHECKPOINT_STAGE, tracker, elapsed_s)
