@@ -1,7 +1,8 @@
 //! The GPU backend against the CPU backend on seeded scenes: images to 1e-4,
 //! gradients to 1e-3 of each parameter group's largest, from 10 to 100k
 //! Gaussians, with the edge cases (behind the camera, huge, tiny, many per
-//! tile, empty tiles, image sizes that are no multiple of the tile).
+//! tile, empty tiles, image sizes that are no multiple of the tile); a scene too
+//! large for the device runs on the CPU backend.
 //!
 //! Without a GPU adapter (a Vulkan driver; lavapipe counts) these tests skip
 //! with a message, unless AIM_REQUIRE_GPU=1 (set by tests/run, which installs
@@ -12,7 +13,7 @@ use std::sync::{Arc, OnceLock};
 use aim::bench::{bench_camera, random_scene};
 use aim::camera::{Camera, Intrinsics};
 use aim::render::gpu::{AdapterKind, GpuContext};
-use aim::render::{backward_sets, render_sets, Gradients, RenderOptions};
+use aim::render::{backward_sets, render_sets, Backend, Gradients, RenderOptions, View};
 use aim::splat::{logit, GaussianSet, ParamGroup};
 use glam::{Mat4, Vec3};
 use rand::{Rng, SeedableRng};
@@ -75,7 +76,7 @@ fn assert_parity(gs: &GaussianSet, camera: &Camera, options: &RenderOptions, reg
 fn assert_sets_parity(sets: &[&GaussianSet], camera: &Camera, options: &RenderOptions, region: [u32; 4]) {
     let Some(ctx) = gpu() else { return };
     let cpu = render_sets(sets, camera, region, options);
-    let gpu = ctx.render_sets(sets, camera, region, options);
+    let gpu = ctx.render_sets(sets, camera, region, options).expect("the scene fits the device");
     assert_eq!((gpu.width, gpu.height), (cpu.width, cpu.height));
     let n: usize = sets.iter().map(|s| s.len()).sum();
     let what = format!("{n} Gaussians in {} sets, {}x{}", sets.len(), cpu.width, cpu.height);
@@ -192,6 +193,37 @@ fn edge_cases_match() {
     let mut hidden = GaussianSet::new(0);
     hidden.push(Vec3::new(0.0, 0.0, -2.0), Vec3::splat(-2.0), [1.0, 0.0, 0.0, 0.0], logit(0.5), [0.2; 3], &[]);
     assert_parity(&hidden, &bench_camera(48), &RenderOptions::uniform(Vec3::ONE), None);
+}
+
+/// A scene whose buffers exceed the device's largest (here an image whose
+/// per-pixel state needs more than lavapipe's 128 MiB) is refused by the GPU
+/// context, naming the buffer, and the GPU backend renders it and its backward
+/// pass on the CPU instead: the CPU backend's image and gradients, no panic.
+#[test]
+fn a_scene_too_large_for_the_device_runs_on_the_cpu_backend() {
+    let Some(ctx) = gpu() else { return };
+    // A square image of more pixels than the largest buffer holds 16-byte states.
+    let side = ((ctx.largest_buffer() / 16) as f64).sqrt().ceil() as u32 + 16;
+    if side > 4096 {
+        eprintln!("skipping: {} holds the state of a {side}x{side} image", ctx.describe());
+        return;
+    }
+    let gs = random_scene(100, 12);
+    let camera = bench_camera(side);
+    let options = RenderOptions::uniform(Vec3::splat(0.2));
+    let err = ctx.render_sets(&[&gs], &camera, [0, 0, side, side], &options).err().expect("too large");
+    assert!(err.to_string().contains("per-pixel state"), "{err}");
+    let backend = Backend::Gpu(ctx);
+    let view = backend.render(&gs, &camera, &options);
+    assert!(matches!(view, View::Cpu(_)), "rendered by the CPU backend");
+    let cpu = aim::render::render(&gs, &camera, &options);
+    assert!(view.image().color == cpu.image.color, "the CPU backend's image");
+    let (gc, ga, _) = pixel_gradients((side * side) as usize, 13);
+    let grads = backend.backward(&gs, &view, &gc, Some(&ga), None);
+    let cpu_grads = aim::render::backward(&gs, &cpu, &gc, Some(&ga), None);
+    for group in ParamGroup::ALL {
+        assert!(grads.params.group(group) == cpu_grads.params.group(group), "{group:?} gradients");
+    }
 }
 
 /// Stage I and a short stage II (node tracking's fitting steps) trained through

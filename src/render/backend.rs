@@ -102,7 +102,16 @@ impl Backend {
     ) -> View {
         match self {
             Backend::Cpu => View::Cpu(super::render_sets(sets, camera, region, options)),
-            Backend::Gpu(ctx) => View::Gpu(ctx.render_sets(sets, camera, region, options)),
+            Backend::Gpu(ctx) => match ctx.render_sets(sets, camera, region, options) {
+                Ok(view) => View::Gpu(view),
+                // Too large for the device: the CPU backend renders it (and its
+                // backward pass), the same image more slowly.
+                Err(limit) => {
+                    static WARNED: std::sync::Once = std::sync::Once::new();
+                    WARNED.call_once(|| tracing::warn!("{limit}: such renders run on the CPU backend"));
+                    View::Cpu(super::render_sets(sets, camera, region, options))
+                }
+            },
         }
     }
 
@@ -128,9 +137,10 @@ impl Backend {
         grad_depth: Option<&[f32]>,
     ) -> Vec<Gradients> {
         match (self, view) {
-            (Backend::Cpu, View::Cpu(r)) => super::backward_sets(sets, r, grad_color, grad_alpha, grad_depth),
+            // The CPU's renders: the CPU backend's, and the GPU backend's scenes too large for the device.
+            (_, View::Cpu(r)) => super::backward_sets(sets, r, grad_color, grad_alpha, grad_depth),
             (Backend::Gpu(ctx), View::Gpu(r)) => ctx.backward_sets(sets, r, grad_color, grad_alpha, grad_depth),
-            _ => panic!("a view is differentiated by the backend that rendered it"),
+            (Backend::Cpu, View::Gpu(_)) => panic!("a GPU render is differentiated by the GPU backend that made it"),
         }
     }
 }

@@ -42,6 +42,24 @@ pub enum GpuError {
     Device { adapter: String, message: String },
 }
 
+/// A scene too large for the device: one of its buffers exceeds the largest
+/// storage buffer the device allows.
+#[derive(Debug, thiserror::Error)]
+#[error("{what} need {bytes} bytes on the GPU, more than its largest buffer ({limit} bytes)")]
+pub struct GpuLimit {
+    pub what: &'static str,
+    pub bytes: u64,
+    pub limit: u64,
+}
+
+/// The first of `buffers` (bytes, with what they hold) larger than `limit`.
+fn check_buffer_sizes(buffers: &[(&'static str, u64)], limit: u64) -> Result<(), GpuLimit> {
+    match buffers.iter().find(|(_, bytes)| *bytes > limit) {
+        Some(&(what, bytes)) => Err(GpuLimit { what, bytes, limit }),
+        None => Ok(()),
+    }
+}
+
 /// Which adapters a [`GpuContext`] may use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum AdapterKind {
@@ -176,25 +194,23 @@ impl GpuContext {
         &self.device
     }
 
-    /// The adapter in words: name, type and API.
+    /// The adapter in words: name, type, API and its largest buffer.
     pub fn describe(&self) -> String {
-        format!("{} ({:?}, {:?})", self.info.name, self.info.device_type, self.info.backend)
-    }
-
-    /// Render `gs` from `camera` (as [`super::render`]).
-    pub fn render(&self, gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> GpuRender {
-        self.render_sets(&[gs], camera, [0, 0, camera.width(), camera.height()], options)
+        let mib = self.largest_buffer() >> 20;
+        format!("{} ({:?}, {:?}, buffers up to {mib} MiB)", self.info.name, self.info.device_type, self.info.backend)
     }
 
     /// Render several Gaussian sets as one scene on the pixels `region` =
-    /// [x0, y0, x1, y1) of `camera`'s image (as [`super::render_sets`]).
+    /// [x0, y0, x1, y1) of `camera`'s image (as [`super::render_sets`]); an
+    /// error when a buffer the render or its backward pass needs is larger than
+    /// the device allows (nothing is sent to the device then).
     pub fn render_sets(
         &self,
         sets: &[&GaussianSet],
         camera: &Camera,
         region: [u32; 4],
         options: &RenderOptions,
-    ) -> GpuRender {
+    ) -> Result<GpuRender, GpuLimit> {
         let prep = Prepared::new(sets, camera, region, options);
         let projection = prep.projection;
         let (width, height) = (projection.width, projection.height);
@@ -206,9 +222,17 @@ impl GpuContext {
             Some(img) => BackgroundPixels::Image(img),
             None => BackgroundPixels::Uniform(options.background),
         };
+        let flat_params = param_buffer(sets);
+        let pixels = u64::from(width) * u64::from(height);
+        // The largest buffers of this render and of its backward pass.
+        self.fits(&[
+            ("parameters and their gradients", 4 * flat_params.len() as u64),
+            ("projected Gaussians and their gradients", 4 * SPLAT_STRIDE.max(GRAD_STRIDE as u64) * n as u64),
+            ("per-pixel state", 16 * pixels),
+        ])?;
         let uniform = frame_uniform(sets, &projection, prep.sh_degree, &background, [tiles_x, tiles_y]);
         let frame = self.uniform(&uniform);
-        let params = self.storage_init("params", bytemuck::cast_slice(&param_buffer(sets)));
+        let params = self.storage_init("params", bytemuck::cast_slice(&flat_params));
 
         // Project, sort by depth, and count each rank's tiles.
         let mut enc = self.encoder();
@@ -234,6 +258,7 @@ impl GpuContext {
         );
         self.scan(&mut enc, &rank_offsets, count + 1);
         let total = self.read_u32s(enc, &[(&rank_offsets, n as u64, 1)]).remove(0)[0];
+        self.fits(&[("tile intersections", 4 * u64::from(total))])?;
 
         // Intersections sorted by tile, each tile's range, compositing.
         let mut enc = self.encoder();
@@ -256,7 +281,6 @@ impl GpuContext {
             &[(0, &pass), (1, &tile_keys), (2, &ranges)],
             groups_1d(total),
         );
-        let pixels = (width * height) as u64;
         let background_image = match &background {
             BackgroundPixels::Image(img) => self.storage_init("background", bytemuck::cast_slice(img)),
             BackgroundPixels::Uniform(_) => self.storage("background", 4),
@@ -288,7 +312,7 @@ impl GpuContext {
             image.final_t.push(s[2]);
             image.last.push(s[3] as u32);
         }
-        GpuRender {
+        Ok(GpuRender {
             width,
             height,
             image,
@@ -302,7 +326,7 @@ impl GpuContext {
             tile_values,
             ranges,
             state,
-        }
+        })
     }
 
     /// Backward pass of `fwd` (a render of `gs`): as [`super::backward`].
@@ -404,6 +428,18 @@ impl GpuContext {
             }
         }
         grads
+    }
+
+    /// Whether buffers of these sizes (bytes, with what they hold) fit the
+    /// device's largest storage buffer.
+    fn fits(&self, buffers: &[(&'static str, u64)]) -> Result<(), GpuLimit> {
+        check_buffer_sizes(buffers, self.largest_buffer())
+    }
+
+    /// The largest storage buffer the device allows, in bytes.
+    pub fn largest_buffer(&self) -> u64 {
+        let limits = self.device.limits();
+        limits.max_buffer_size.min(limits.max_storage_buffer_binding_size)
     }
 
     pub(crate) fn encoder(&self) -> wgpu::CommandEncoder {
@@ -689,5 +725,19 @@ impl Kernels {
             rasterize_backward: pipeline(&raster_bwd, "main"),
             project_backward: pipeline(&project_bwd, "main"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_first_buffer_over_the_limit_is_named() {
+        let buffers = [("small", 10), ("large", 300), ("larger", 400)];
+        assert!(check_buffer_sizes(&buffers, 400).is_ok());
+        let err = check_buffer_sizes(&buffers, 299).expect_err("over");
+        assert_eq!((err.what, err.bytes, err.limit), ("large", 300, 299));
+        assert_eq!(err.to_string(), "large need 300 bytes on the GPU, more than its largest buffer (299 bytes)");
     }
 }
