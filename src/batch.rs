@@ -257,12 +257,16 @@ pub struct Status {
     pub error: Option<String>,
     /// Runs of this capture so far, this one included.
     pub attempts: u32,
+    /// What a running attempt is doing ("interaction 1: stage I", ...); None once it ended.
+    #[serde(default)]
+    pub stage: Option<String>,
     /// Checkpoints this attempt resumed from (paths under the session folder).
     pub resumed_from: Vec<String>,
     /// Seconds since the Unix epoch.
     pub started_unix_s: f64,
     pub finished_unix_s: Option<f64>,
-    /// This attempt's wall time, and all attempts'.
+    /// This attempt's wall time, and all attempts' (a killed attempt's up to
+    /// the start of its last stage).
     pub wall_s: f64,
     pub total_wall_s: f64,
     pub peak_rss_mib: Option<f64>,
@@ -374,6 +378,7 @@ impl Worker<'_> {
             failure: None,
             error: None,
             attempts: previous.as_ref().map_or(0, |p| p.attempts) + 1,
+            stage: None,
             resumed_from: checkpoints_under(&partial),
             started_unix_s: unix_now(),
             finished_unix_s: None,
@@ -392,15 +397,44 @@ impl Worker<'_> {
             interactions: Vec::new(),
         };
         let started = Instant::now();
+        let earlier_wall_s = status.total_wall_s;
         let outcome = match self.session_config(capture) {
             Err(e) => Err(e),
             Ok(cfg) => {
                 status.config =
                     serde_json::to_value(StagesConfig { stage_one: &cfg.stage_one, stage_two: &cfg.stage_two }).ok();
                 write_status(&status_path, &status)?;
+                // Each stage's start is written to the status with the time so far:
+                // the summary says where a running capture is, and a killed
+                // attempt's time counts up to its last stage.
+                let running = std::sync::Mutex::new(&mut status);
+                let heartbeat = |e: SessionEvent| {
+                    let stage = match &e {
+                        SessionEvent::StageOneStarted { interaction, .. } => {
+                            Some(format!("interaction {}: stage I", interaction + 1))
+                        }
+                        SessionEvent::StageTwoStarted { interaction, .. } => {
+                            Some(format!("interaction {}: stages II and III", interaction + 1))
+                        }
+                        SessionEvent::Articulated { interaction, .. } => {
+                            Some(format!("interaction {}: meshes and export", interaction + 1))
+                        }
+                        _ => None,
+                    };
+                    if let Some(stage) = stage {
+                        let mut s = running.lock().unwrap_or_else(|e| e.into_inner());
+                        s.stage = Some(stage);
+                        s.wall_s = started.elapsed().as_secs_f64();
+                        s.total_wall_s = earlier_wall_s + s.wall_s;
+                        if let Err(e) = write_status(&status_path, &s) {
+                            tracing::warn!("{e}");
+                        }
+                    }
+                    on_event(e)
+                };
                 // A bug in one capture must not take the batch's status with it.
                 std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    self.session(capture, cfg, &partial, on_event)
+                    self.session(capture, cfg, &partial, &heartbeat)
                 }))
                 .unwrap_or_else(|panic| {
                     let message = panic
@@ -412,8 +446,9 @@ impl Worker<'_> {
                 })
             }
         };
+        status.stage = None;
         status.wall_s = started.elapsed().as_secs_f64();
-        status.total_wall_s += status.wall_s;
+        status.total_wall_s = earlier_wall_s + status.wall_s;
         status.peak_rss_mib = crate::train::static_stage::peak_rss_mib();
         let result = match outcome {
             Ok(Some(interactions)) => {
@@ -574,6 +609,8 @@ pub struct SummaryRow {
     pub state: Option<State>,
     pub failure: Option<Failure>,
     pub error: Option<String>,
+    /// Where a running (or abandoned) capture is.
+    pub stage: Option<String>,
     pub attempts: u32,
     /// Moving parts found, over all its interactions.
     pub parts: Option<usize>,
@@ -627,6 +664,7 @@ fn summary_row(dir: &Path) -> SummaryRow {
                 state: None,
                 failure: None,
                 error: Some(e.to_string()),
+                stage: None,
                 attempts: 0,
                 parts: None,
                 ground_truth_parts: None,
@@ -664,6 +702,7 @@ fn summary_row(dir: &Path) -> SummaryRow {
         state: Some(state),
         failure: status.failure,
         error: status.error,
+        stage: status.stage,
         attempts: status.attempts,
         parts: done.then(|| status.interactions.iter().map(|i| i.parts.len()).sum()),
         ground_truth_parts: count(&|r| r.matched.len() + r.missing.len()),

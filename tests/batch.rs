@@ -180,7 +180,8 @@ fn a_killed_worker_resumes_its_capture_from_its_checkpoints_and_leaves_the_other
     kill("-TERM", &first);
     let code = first.wait().expect("exits").code();
     assert_eq!(code, Some(4), "interrupted");
-    assert_eq!(status("fridge")["state"], "interrupted");
+    let status_after_sigterm = status("fridge");
+    assert_eq!(status_after_sigterm["state"], "interrupted");
 
     // Run again; while it runs, a second worker on the same capture is turned away
     // (exit 6); then it is killed outright once stage II has checkpointed.
@@ -194,6 +195,9 @@ fn a_killed_worker_resumes_its_capture_from_its_checkpoints_and_leaves_the_other
     let killed = status("fridge");
     assert_eq!(killed["state"], "running", "the kill came mid-capture: {killed}");
     assert_eq!(killed["attempts"], 2);
+    assert_eq!(killed["stage"], "interaction 1: stages II and III", "where it was killed");
+    let first_wall = status_after_sigterm["total_wall_s"].as_f64().expect("wall");
+    assert!(killed["total_wall_s"].as_f64().expect("wall") > first_wall, "the killed attempt's time counts: {killed}");
     let summary = aim().args(["batch", "--summary"]).arg(&batch).output().expect("runs");
     assert!(summary.status.success(), "{}", text(&summary));
     let row = |name: &str| {
@@ -201,6 +205,7 @@ fn a_killed_worker_resumes_its_capture_from_its_checkpoints_and_leaves_the_other
         s["captures"].as_array().expect("rows").iter().find(|r| r["name"] == name).cloned().expect("row")
     };
     assert_eq!(row("fridge")["state"], "abandoned", "nobody holds its lock");
+    assert_eq!(row("fridge")["stage"], "interaction 1: stages II and III");
     assert_eq!(row("storage")["state"], "done");
 
     // The whole batch again: the killed capture is finished from its checkpoints,
@@ -211,6 +216,7 @@ fn a_killed_worker_resumes_its_capture_from_its_checkpoints_and_leaves_the_other
     let done = status("fridge");
     assert_eq!(done["state"], "done", "{done}");
     assert_eq!(done["attempts"], 3);
+    assert!(done["stage"].is_null(), "{done}");
     let resumed: Vec<&str> = done["resumed_from"].as_array().expect("list").iter().filter_map(Value::as_str).collect();
     assert_eq!(resumed, ["interaction_1/dynamic/checkpoint.bin", "interaction_1/static/checkpoint.bin"]);
     assert!(snapshot(&batch.join("storage")) == storage_before, "the other capture was touched");

@@ -183,7 +183,8 @@ fn print_summary(summary: &Summary) {
             (Some(m), Some(n)) => format!("{m}/{n}"),
             _ => "-".into(),
         };
-        let error = row.error.as_deref().unwrap_or("").replace('\n', " ");
+        // The error, or where a running capture is.
+        let error = row.error.as_deref().or(row.stage.as_deref()).unwrap_or("").replace('\n', " ");
         println!(
             "{:<24} {:<12} {:>5} {:>9} {:>5} {:>8} {:>6} {:>8} {:>8} {:>8.1} {:>3}  {error}",
             row.name,

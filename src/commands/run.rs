@@ -126,7 +126,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
         SessionOutcome::Interrupted => {
-            println!("interrupted; the stage that was running wrote its checkpoint in {}", args.out.display())
+            println!(
+                "interrupted; the stage that was running wrote its checkpoint in {}: the same command with --resume continues",
+                args.out.display()
+            )
         }
     }
     Ok(())
