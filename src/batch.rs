@@ -366,6 +366,7 @@ impl Worker<'_> {
             // A worker that died between the rename and its last status left it running.
             if let Some(mut status) = previous.filter(|p| p.state != State::Done) {
                 status.state = State::Done;
+                status.stage = None;
                 write_status(&status_path, &status)?;
             }
             return Ok(CaptureOutcome::AlreadyDone);
