@@ -603,7 +603,7 @@ fn host_name() -> String {
 }
 
 /// One capture in a batch's summary.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Default, Serialize)]
 pub struct SummaryRow {
     pub name: String,
     /// None: its status.json could not be read (`error` says why).
@@ -659,26 +659,7 @@ fn summary_row(dir: &Path) -> SummaryRow {
     let name = dir.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
     let status = match read_status(&dir.join(STATUS_FILE)) {
         Ok(s) => s,
-        Err(e) => {
-            return SummaryRow {
-                name,
-                state: None,
-                failure: None,
-                error: Some(e.to_string()),
-                stage: None,
-                attempts: 0,
-                parts: None,
-                ground_truth_parts: None,
-                matched: None,
-                missing: None,
-                extra: None,
-                worst_axis_angle_deg: None,
-                worst_axis_position: None,
-                worst_rotation_deg: None,
-                worst_translation_m: None,
-                total_wall_s: 0.0,
-            }
-        }
+        Err(e) => return SummaryRow { name, error: Some(e.to_string()), ..SummaryRow::default() },
     };
     let mut state = status.state;
     // Running, but nobody holds its lock: its worker is gone.

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use bytemuck::{Pod, Zeroable};
 
 use super::{DeformNet, Layer};
-use crate::render::gpu::{compute_pipeline, groups_1d, shader_module, GpuContext};
+use crate::render::gpu::{compute_pipeline, groups_1d, shader_module, GpuContext, COMMON_WGSL};
 
 /// The `Gemm` uniform of matmul.wgsl.
 #[repr(C)]
@@ -86,9 +86,8 @@ pub struct GpuDeformCache {
 impl GpuDeformNet {
     pub fn new(ctx: Arc<GpuContext>) -> Self {
         let device = ctx.device();
-        let matmul = shader_module(device, "matmul", include_str!("../../shaders/matmul.wgsl"));
-        let mlp_source = [include_str!("../../shaders/common.wgsl"), include_str!("../../shaders/mlp.wgsl")].concat();
-        let mlp = shader_module(device, "mlp", &mlp_source);
+        let matmul = shader_module(device, "matmul", &[include_str!("../../shaders/matmul.wgsl")]);
+        let mlp = shader_module(device, "mlp", &[COMMON_WGSL, include_str!("../../shaders/mlp.wgsl")]);
         let pipeline = |module: &wgpu::ShaderModule, entry: &str| compute_pipeline(device, module, entry);
         Self {
             gemm: pipeline(&matmul, "main"),
@@ -202,6 +201,11 @@ impl GpuDeformNet {
             let weights_t = Operand::transposed(&cache.params, l.offset);
             self.gemm(&mut enc, Operand::plain(&g, 0), weights_t, (&dh, 0), [n, l.outputs, w], true);
         }
+        // The first layer's and the skip layer's weights on the encoded input: dW = x^T dh.
+        let input_weight_gradients = |enc: &mut wgpu::CommandEncoder, dh: &wgpu::Buffer, offset: usize| {
+            let x_t = Operand::transposed(&cache.input, 0);
+            self.gemm(enc, x_t, Operand::plain(dh, 0), (&grads, offset), [d_in, n, w], false);
+        };
         for i in (0..layers.len()).rev() {
             let l = layers[i];
             // Through the ReLU: zero where the output was clamped.
@@ -209,27 +213,13 @@ impl GpuDeformNet {
             self.elementwise(&mut enc, &self.relu_mask, &mask, &cache.hidden[i], &dh, n * w);
             self.column_sums(&mut enc, &dh, &grads, n, w, l.biases().start);
             if i == 0 {
-                self.gemm(
-                    &mut enc,
-                    Operand::transposed(&cache.input, 0),
-                    Operand::plain(&dh, 0),
-                    (&grads, l.offset),
-                    [d_in, n, w],
-                    false,
-                );
+                input_weight_gradients(&mut enc, &dh, l.offset);
                 break;
             }
             let prev = &cache.hidden[i - 1];
             let dprev = ctx.storage("hidden gradient", (4 * n * w) as u64);
             let hidden_weights = if i == net.config.skip() + 1 {
-                self.gemm(
-                    &mut enc,
-                    Operand::transposed(&cache.input, 0),
-                    Operand::plain(&dh, 0),
-                    (&grads, l.offset),
-                    [d_in, n, w],
-                    false,
-                );
+                input_weight_gradients(&mut enc, &dh, l.offset);
                 l.offset + d_in * w
             } else {
                 l.offset

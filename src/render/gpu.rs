@@ -27,6 +27,9 @@ use crate::splat::{GaussianSet, ParamGroup};
 
 /// Threads per workgroup of the 1D kernels (and elements per sort or scan block).
 const GROUP: u32 = 256;
+/// The constants, uniforms and helpers every kernel's module starts with.
+pub(crate) const COMMON_WGSL: &str = include_str!("../../shaders/common.wgsl");
+
 /// Most workgroups one dispatch dimension may hold (WebGPU's limit).
 const MAX_GROUPS_PER_DIM: u32 = 65_535;
 /// Floats per projected Gaussian and per projected-gradient record (common.wgsl).
@@ -671,11 +674,12 @@ fn frame_uniform(
     }
 }
 
-/// A WGSL module compiled for `device`.
-pub(crate) fn shader_module(device: &wgpu::Device, name: &str, source: &str) -> wgpu::ShaderModule {
+/// A WGSL module compiled for `device` from `parts` put one after another (a
+/// kernel's file after the shared ones it uses: common.wgsl, gaussian.wgsl, sh.wgsl).
+pub(crate) fn shader_module(device: &wgpu::Device, name: &str, parts: &[&str]) -> wgpu::ShaderModule {
     device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(name),
-        source: wgpu::ShaderSource::Wgsl(source.into()),
+        source: wgpu::ShaderSource::Wgsl(parts.concat().into()),
     })
 }
 
@@ -698,20 +702,22 @@ pub(crate) fn compute_pipeline(
 
 impl Kernels {
     fn compile(device: &wgpu::Device) -> Self {
-        const COMMON: &str = include_str!("../../shaders/common.wgsl");
         const GAUSSIAN: &str = include_str!("../../shaders/gaussian.wgsl");
         const SH: &str = include_str!("../../shaders/sh.wgsl");
-        let module = |name: &str, parts: &[&str]| shader_module(device, name, &parts.concat());
+        let module = |name: &str, parts: &[&str]| shader_module(device, name, parts);
         let pipeline = |module: &wgpu::ShaderModule, entry: &str| compute_pipeline(device, module, entry);
-        let project = module("project", &[COMMON, GAUSSIAN, SH, include_str!("../../shaders/project.wgsl")]);
-        let sort = module("sort", &[COMMON, include_str!("../../shaders/sort.wgsl")]);
-        let scan = module("scan", &[COMMON, include_str!("../../shaders/scan.wgsl")]);
-        let bin = module("bin", &[COMMON, include_str!("../../shaders/bin.wgsl")]);
-        let ranges = module("tile ranges", &[COMMON, include_str!("../../shaders/tile_ranges.wgsl")]);
-        let raster = module("rasterize", &[COMMON, include_str!("../../shaders/rasterize.wgsl")]);
-        let raster_bwd = module("rasterize backward", &[COMMON, include_str!("../../shaders/rasterize_backward.wgsl")]);
-        let project_bwd =
-            module("project backward", &[COMMON, GAUSSIAN, SH, include_str!("../../shaders/project_backward.wgsl")]);
+        let project = module("project", &[COMMON_WGSL, GAUSSIAN, SH, include_str!("../../shaders/project.wgsl")]);
+        let sort = module("sort", &[COMMON_WGSL, include_str!("../../shaders/sort.wgsl")]);
+        let scan = module("scan", &[COMMON_WGSL, include_str!("../../shaders/scan.wgsl")]);
+        let bin = module("bin", &[COMMON_WGSL, include_str!("../../shaders/bin.wgsl")]);
+        let ranges = module("tile ranges", &[COMMON_WGSL, include_str!("../../shaders/tile_ranges.wgsl")]);
+        let raster = module("rasterize", &[COMMON_WGSL, include_str!("../../shaders/rasterize.wgsl")]);
+        let raster_bwd =
+            module("rasterize backward", &[COMMON_WGSL, include_str!("../../shaders/rasterize_backward.wgsl")]);
+        let project_bwd = module(
+            "project backward",
+            &[COMMON_WGSL, GAUSSIAN, SH, include_str!("../../shaders/project_backward.wgsl")],
+        );
         Self {
             project: pipeline(&project, "main"),
             count_digits: pipeline(&sort, "count_digits"),
