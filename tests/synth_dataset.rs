@@ -212,7 +212,7 @@ fn command_line_lists_objects_and_rejects_unknown_names() {
     let out = Command::new(exe).args(["synth", "--list"]).output().unwrap();
     assert!(out.status.success());
     let text = String::from_utf8_lossy(&out.stdout);
-    for name in aim::synth::OBJECT_NAMES {
+    for name in aim::synth::OBJECT_NAMES.into_iter().chain(aim::synth::HELD_OUT_NAMES) {
         assert!(text.contains(name), "--list lacks {name}:\n{text}");
     }
     let out = Command::new(exe).args(["synth", "toaster", "--out", "/nonexistent/never"]).output().unwrap();

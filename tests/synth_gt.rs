@@ -9,7 +9,7 @@ use aim::camera::Camera;
 use aim::mesh::read_obj;
 use aim::mesh::MeshData;
 use aim::synth::gt::JointsFile;
-use aim::synth::{object, write_dataset, SynthConfig, OBJECT_NAMES};
+use aim::synth::{object, write_dataset, SynthConfig, HELD_OUT_NAMES, OBJECT_NAMES};
 use aim_capture::dataset::{load_aim, LoadOptions};
 use aim_capture::Frame;
 use glam::{Affine3A, Vec3};
@@ -30,12 +30,17 @@ fn config() -> SynthConfig {
     }
 }
 
+/// The benchmark's objects and those held out of it.
+fn all_objects() -> impl Iterator<Item = &'static str> {
+    OBJECT_NAMES.into_iter().chain(HELD_OUT_NAMES)
+}
+
 /// All objects written once per test binary.
 fn datasets() -> &'static PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
         let root = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("synth_gt");
-        for name in OBJECT_NAMES {
+        for name in all_objects() {
             write_dataset(&object(name).unwrap(), &root.join(name), &config(), &|_, _| {}).unwrap();
         }
         root
@@ -81,7 +86,7 @@ fn all_frames(dir: &Path) -> Vec<Frame> {
 #[test]
 fn projected_gt_surface_points_hit_their_part_at_their_depth() {
     let root = datasets();
-    for name in OBJECT_NAMES {
+    for name in all_objects() {
         let dir = root.join(name);
         let gt = load_gt(&dir);
         let samples: Vec<Vec<Vec3>> =
@@ -193,7 +198,7 @@ fn rasterise_part_ids(meshes: &[MeshData], cam: &Camera) -> Vec<u8> {
 #[test]
 fn parts_moved_by_gt_joints_match_rendered_masks() {
     let root = datasets();
-    for name in OBJECT_NAMES {
+    for name in all_objects() {
         let dir = root.join(name);
         let gt = load_gt(&dir);
         let mut worst = 1.0f64;
@@ -232,7 +237,7 @@ fn parts_moved_by_gt_joints_match_rendered_masks() {
 #[test]
 fn gt_end_meshes_equal_start_meshes_moved_by_the_joints() {
     let root = datasets();
-    for name in OBJECT_NAMES {
+    for name in all_objects() {
         let dir = root.join(name);
         let gt = load_gt(&dir);
         let mut moving = 0;

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 
-use aim::synth::{objects, write_dataset, SynthConfig, OBJECT_NAMES};
+use aim::synth::{objects, write_dataset, SynthConfig, HELD_OUT_NAMES, OBJECT_NAMES};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -14,7 +14,7 @@ pub struct Args {
     /// List the objects and their joints, then exit.
     #[arg(long)]
     pub list: bool,
-    /// Generate every object, each into OUT/OBJECT.
+    /// Generate every benchmark object (not the held-out ones), each into OUT/OBJECT.
     #[arg(long, conflicts_with = "object")]
     pub all: bool,
     /// Output directory (default: out/synth/OBJECT; with --all the parent, default out/synth).
@@ -44,7 +44,8 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     if args.list {
-        for name in OBJECT_NAMES {
+        let held_out = HELD_OUT_NAMES.iter().map(|n| (n, " (held out of the benchmark)"));
+        for (name, note) in OBJECT_NAMES.iter().map(|n| (n, "")).chain(held_out) {
             let o = objects::object(name)?;
             let joints: Vec<String> = o
                 .joints
@@ -61,7 +62,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     }
                 })
                 .collect();
-            println!("{name:<20} {} parts: {}", o.parts.len(), joints.join("; "));
+            println!("{name:<20} {} parts: {}{note}", o.parts.len(), joints.join("; "));
         }
         return Ok(());
     }

@@ -52,7 +52,7 @@ pub use crate::motion::JointKind;
 pub use dataset::{plan_views, write_dataset, DatasetSummary, PlannedView, SynthConfig};
 pub use geometry::{Aabb, Ray, Shape};
 pub use gt::{JointRecord, JointsFile};
-pub use objects::{object, OBJECT_NAMES};
+pub use objects::{object, HELD_OUT_NAMES, OBJECT_NAMES};
 pub use render::{camera_ray, render, RenderOptions, RenderOutput, BACKGROUND_ID};
 pub use scene::{ArticulatedObject, Hit, Joint, Part, PosedScene, Primitive};
 pub use texture::{Material, Pattern};
