@@ -597,9 +597,10 @@ pub fn nightstand() -> ArticulatedObject {
 }
 
 /// Laptop: the screen, hinged along the base's back edge, closes from 110 to 40
-/// deg about -x (modelled shut, lying on the base). Two plain slabs: nothing
-/// stacked on their faces, so every face of the ground-truth meshes is either
-/// visible or well inside.
+/// deg about -x (modelled shut, lying on the base). Two plain slabs, one colour
+/// each: a keyboard or a screen as thin slabs on their faces would hide ground-truth
+/// faces a few millimetres under others, which the dataset's depth test reads as
+/// depth error.
 pub fn laptop() -> ArticulatedObject {
     let base = vec![bx([-0.35, -0.24, -0.025], [0.35, 0.24, 0.0], paint(0.25, 0.26, 0.29))];
     let lid = vec![bx([-0.35, -0.24, 0.001], [0.35, 0.24, 0.018], paint(0.7, 0.71, 0.73))];

@@ -46,6 +46,13 @@ pub(super) const JOIN_SHARE: f32 = 0.25;
 /// A part found on the end state also looks right where it moved when its
 /// residual there is below this share of its nodes' residual at rest.
 const AT_REST_SHARE: f32 = 0.5;
+/// A turning part's hinge lies on the part: its axis passes within this share of
+/// the object's size of the part's start-state Gaussians (of the nearest
+/// `HINGE_QUANTILE` of them: a few stray Gaussians are no hinge) ...
+const HINGE_REACH: f32 = 0.1;
+const HINGE_QUANTILE: f32 = 0.01;
+/// ... judged for turns of at least this many radians (a smaller turn's axis is ill-defined).
+const HINGE_MIN_TURN: f64 = 0.1;
 /// Tracked parts and candidates are judged on the end state in pieces of about this many nodes.
 const TRIM_CHUNK_NODES: usize = 16;
 
@@ -466,7 +473,9 @@ impl NodeTracker {
         views: &[&TrainView],
     ) -> bool {
         let (seen, median) = self.residual_where_moved(p, views);
-        let passes = 2 * seen >= candidate_nodes && (median < threshold || median < AT_REST_SHARE * at_rest);
+        let passes = 2 * seen >= candidate_nodes
+            && (median < threshold || median < AT_REST_SHARE * at_rest)
+            && self.hinge_on_part(p);
         let parts = self.articulation.as_ref().expect("the part judged");
         let c = parts.centres[p];
         let joint = crate::motion::extract_joint(&parts.poses[self.knots.len() - 1][p].to_rigid(c), c.as_dvec3());
@@ -484,6 +493,36 @@ impl NodeTracker {
             "stage II: the searched part where it moved"
         );
         passes
+    }
+
+    /// Whether part `p`'s end motion, when it turns, turns about an axis on the
+    /// part (`HINGE_REACH`): a door or a lid is hinged where it meets the body.
+    /// A piece of a plain panel can land inside the panel's end outline by a turn
+    /// about an axis far off it, and looks right there (docs/training.md).
+    fn hinge_on_part(&self, p: usize) -> bool {
+        let parts = self.articulation.as_ref().expect("the part judged");
+        let c = parts.centres[p];
+        let joint = crate::motion::extract_joint(&parts.poses[self.knots.len() - 1][p].to_rigid(c), c.as_dvec3());
+        if joint.kind != crate::motion::JointKind::Revolute || joint.amount < HINGE_MIN_TURN {
+            return true;
+        }
+        let (axis, origin) = (joint.axis.as_vec3(), joint.origin.as_vec3());
+        let mut reach: Vec<f32> = self
+            .gaussians_labelled(&parts.node_part, p + 1)
+            .into_iter()
+            .map(|i| {
+                let v = self.gaussians.mean(i) - origin;
+                (v - axis * v.dot(axis)).length()
+            })
+            .collect();
+        if reach.is_empty() {
+            return true;
+        }
+        reach.sort_by(f32::total_cmp);
+        let reach = reach[((reach.len() as f32 * HINGE_QUANTILE) as usize).min(reach.len() - 1)];
+        let on_part = reach <= HINGE_REACH * self.object_size;
+        tracing::info!(part = p + 1, reach, on_part, "stage II: a turning part's axis against its Gaussians");
+        on_part
     }
 
     /// How many of part `p`'s nodes `views` see at the last knot, and the median
@@ -527,7 +566,7 @@ impl NodeTracker {
             let residual = self.node_residuals(&parts, p + 1, &views, true);
             let (seen, median) = seen_median(&members, &residual);
             // The test a part found on the end state passes (`looks_right_where_moved`).
-            let wrong = 2 * seen < nodes || median >= threshold;
+            let wrong = 2 * seen < nodes || median >= threshold || !self.hinge_on_part(p);
             tracing::info!(
                 part = p + 1,
                 nodes,
@@ -988,6 +1027,23 @@ mod tests {
         assert_eq!(parts.centres.len(), 1, "the door kept");
         assert_eq!(parts.node_part.iter().filter(|&&l| l == 1).count(), door_nodes, "the door's nodes unchanged");
         assert_eq!(parts.node_part.iter().filter(|&&l| l > 1).count(), 0);
+    }
+
+    #[test]
+    fn a_turn_is_judged_by_whether_its_axis_lies_on_the_part() {
+        let (mut tracker, _, _) = plates(1.0);
+        let door: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.x > 0.0)).collect();
+        let c = tracker.labelled_centroid(&door, 1);
+        let slide = NodePose { rotation: Quat::IDENTITY, translation: Vec3::new(0.0, 0.0, 0.4) };
+        let judged = |tracker: &mut NodeTracker, end: NodePose| {
+            tracker.set_articulation(parts_at(tracker, &door, &[end]));
+            tracker.hinge_on_part(0)
+        };
+        let quarter = -std::f32::consts::FRAC_PI_2;
+        assert!(judged(&mut tracker, turn_about(quarter, Vec3::ZERO, c)), "hinged at the door's edge");
+        assert!(judged(&mut tracker, turn_about(quarter, Vec3::new(0.25, 0.0, 0.0), c)), "about its middle");
+        assert!(!judged(&mut tracker, turn_about(quarter, Vec3::new(-0.4, 0.0, 0.0), c)), "about a line 0.4 off it");
+        assert!(judged(&mut tracker, slide), "a slide has no hinge");
     }
 
     /// The parts `node_part` labels, each at `end[p]` (a pose about its centre)
