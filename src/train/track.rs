@@ -389,6 +389,12 @@ impl TrackedParts {
         }
     }
 
+    /// Part `p`'s (from 0) joint from its motion between rest and the last knot.
+    fn end_joint(&self, p: usize) -> crate::motion::JointEstimate {
+        let c = self.centres[p];
+        extract_joint(&self.poses[self.poses.len() - 1][p].to_rigid(c), c.as_dvec3())
+    }
+
     /// Whether part `p` (from 0) was found on the end state.
     fn is_found_on_end_state(&self, p: usize) -> bool {
         self.found_on_end_state.get(p).copied().unwrap_or(false)
@@ -1523,7 +1529,6 @@ impl NodeTracker {
     /// axes (`object_box_axes`, computed once by the caller for all its grids).
     fn end_pose_grid(&self, parts: &TrackedParts, p: usize, around: &[Vec3], principal: [Vec3; 3]) -> Vec<NodePose> {
         let step = self.config.track.search_step;
-        let last = parts.poses.len() - 1;
         let means: Vec<Vec3> = (0..self.gaussians.len()).map(|i| self.gaussians.mean(i)).collect();
         let members: Vec<Vec3> =
             self.gaussians_labelled(&parts.node_part, p + 1).into_iter().map(|i| means[i]).collect();
@@ -1531,7 +1536,7 @@ impl NodeTracker {
             return Vec::new();
         }
         let c = parts.centres[p];
-        let own = extract_joint(&parts.poses[last][p].to_rigid(c), c.as_dvec3()).axis.as_vec3();
+        let own = parts.end_joint(p).axis.as_vec3();
         // Each candidate axis with the two directions across it that bound the
         // part's box (the object's other box axes, so the pivots are the box's
         // edges).

@@ -473,12 +473,10 @@ impl NodeTracker {
         views: &[&TrainView],
     ) -> bool {
         let (seen, median) = self.residual_where_moved(p, views);
+        let joint = self.articulation.as_ref().expect("the part judged").end_joint(p);
         let passes = 2 * seen >= candidate_nodes
             && (median < threshold || median < AT_REST_SHARE * at_rest)
-            && self.hinge_on_part(p);
-        let parts = self.articulation.as_ref().expect("the part judged");
-        let c = parts.centres[p];
-        let joint = crate::motion::extract_joint(&parts.poses[self.knots.len() - 1][p].to_rigid(c), c.as_dvec3());
+            && self.axis_on_part(p, &joint);
         tracing::info!(
             part = p + 1,
             seen,
@@ -495,14 +493,12 @@ impl NodeTracker {
         passes
     }
 
-    /// Whether part `p`'s end motion, when it turns, turns about an axis on the
-    /// part (`HINGE_REACH`): a door or a lid is hinged where it meets the body.
-    /// A piece of a plain panel can land inside the panel's end outline by a turn
-    /// about an axis far off it, and looks right there (docs/training.md).
-    fn hinge_on_part(&self, p: usize) -> bool {
+    /// Whether part `p`'s end motion `joint`, when it turns, turns about an axis
+    /// on the part (`HINGE_REACH`): a door or a lid is hinged where it meets the
+    /// body. A piece of a plain panel can land inside the panel's end outline by a
+    /// turn about an axis far off it, and looks right there (docs/training.md).
+    fn axis_on_part(&self, p: usize, joint: &crate::motion::JointEstimate) -> bool {
         let parts = self.articulation.as_ref().expect("the part judged");
-        let c = parts.centres[p];
-        let joint = crate::motion::extract_joint(&parts.poses[self.knots.len() - 1][p].to_rigid(c), c.as_dvec3());
         if joint.kind != crate::motion::JointKind::Revolute || joint.amount < HINGE_MIN_TURN {
             return true;
         }
@@ -566,7 +562,7 @@ impl NodeTracker {
             let residual = self.node_residuals(&parts, p + 1, &views, true);
             let (seen, median) = seen_median(&members, &residual);
             // The test a part found on the end state passes (`looks_right_where_moved`).
-            let wrong = 2 * seen < nodes || median >= threshold || !self.hinge_on_part(p);
+            let wrong = 2 * seen < nodes || median >= threshold || !self.axis_on_part(p, &parts.end_joint(p));
             tracing::info!(
                 part = p + 1,
                 nodes,
@@ -1036,8 +1032,10 @@ mod tests {
         let c = tracker.labelled_centroid(&door, 1);
         let slide = NodePose { rotation: Quat::IDENTITY, translation: Vec3::new(0.0, 0.0, 0.4) };
         let judged = |tracker: &mut NodeTracker, end: NodePose| {
-            tracker.set_articulation(parts_at(tracker, &door, &[end]));
-            tracker.hinge_on_part(0)
+            let parts = parts_at(tracker, &door, &[end]);
+            let joint = parts.end_joint(0);
+            tracker.set_articulation(parts);
+            tracker.axis_on_part(0, &joint)
         };
         let quarter = -std::f32::consts::FRAC_PI_2;
         assert!(judged(&mut tracker, turn_about(quarter, Vec3::ZERO, c)), "hinged at the door's edge");
