@@ -1147,14 +1147,8 @@ impl NodeTracker {
                 .map(|p| (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == p).collect())
                 .collect();
             let moved = |p: usize, k: usize| last[p].apply(parts.centres[p], self.node_centres[k]);
-            let joints: Vec<Option<crate::motion::JointEstimate>> = (0..nodes.len())
-                .map(|p| {
-                    (!nodes[p].is_empty()).then(|| {
-                        let c = parts.centres[p];
-                        extract_joint(&last[p].to_rigid(c), c.as_dvec3())
-                    })
-                })
-                .collect();
+            let joints: Vec<Option<crate::motion::JointEstimate>> =
+                (0..nodes.len()).map(|p| (!nodes[p].is_empty()).then(|| parts.end_joint(p))).collect();
             let radii: Vec<f64> = nodes
                 .iter()
                 .filter(|n| !n.is_empty())
@@ -1403,8 +1397,8 @@ impl NodeTracker {
         tracing::info!(loss, views = end_views.len(), "stage II: the parts' end poses fitted on the end-state views");
         if tracing::enabled!(tracing::Level::DEBUG) {
             let parts = self.articulation.as_ref().expect("parts");
-            for (p, (pose, &c)) in parts.poses[last].iter().zip(&parts.centres).enumerate() {
-                let joint = extract_joint(&pose.to_rigid(c), c.as_dvec3());
+            for p in 0..parts.centres.len() {
+                let joint = parts.end_joint(p);
                 tracing::debug!(part = p + 1, kind = ?joint.kind, axis = ?joint.axis, amount = joint.amount, "stage II: a part's end motion");
             }
         }
