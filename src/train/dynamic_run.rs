@@ -10,12 +10,13 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
+use super::config::StaticConfig;
 use super::dynamic_stage::{
     load_checkpoint, require_times, save_checkpoint, DualTrainer, DynamicConfig, DynamicStep, PartEstimate,
     StageTwoMethod, StageTwoViews,
 };
-use super::static_stage::peak_rss_mib;
-use super::track::{NodePose, NodeTracker};
+use super::static_stage::{peak_rss_mib, GaussianTrainer};
+use super::track::{EndScan, NodePose, NodeTracker};
 use super::views::load_phase_views;
 use super::views::TrainView;
 use crate::error::{write_atomic, Error, Result};
@@ -358,6 +359,9 @@ fn run_node_track(
         end_views.clear();
     }
     end_views.iter_mut().for_each(|v| v.time = Some(1.0));
+    if !end_views.is_empty() && tracker.config.track.end_scan_iterations > 0 {
+        tracker.end_scan = EndScan::new(&end_state_scan(out, &end_views, &tracker)?, tracker.object_size);
+    }
     tracker.refit_end_poses(&end_views);
     tracker.merge_redundant_parts(&frames, &end_views);
     // Merge first, so that pieces that explain nothing are gone before a searched
@@ -412,6 +416,34 @@ fn run_node_track(
         tracking_error_at_discovery,
     };
     finish(run, control.viz, &base, parts, &part_sets, summary)
+}
+
+/// The end state scanned as the start state was (stage I's trainer and its cpu
+/// settings for `track.end_scan_iterations`, the run's seed, on `end_views`):
+/// out/end_scan.ply when a run of this folder wrote it before (a resumed run),
+/// else trained and written there.
+fn end_state_scan(out: &Path, end_views: &[TrainView], tracker: &NodeTracker) -> Result<GaussianSet> {
+    let path = out.join("end_scan.ply");
+    if path.exists() {
+        return crate::splat::ply::read_ply(&path);
+    }
+    let cpu = StaticConfig::cpu();
+    let iterations = tracker.config.track.end_scan_iterations;
+    let mut config = cpu.compressed(f64::from(iterations) / f64::from(cpu.iterations));
+    config.seed = tracker.config.seed;
+    let mut trainer = GaussianTrainer::new(config, end_views, None)?;
+    trainer.backend = tracker.backend.clone();
+    let started = Instant::now();
+    while trainer.iteration < trainer.config.iterations {
+        trainer.step(end_views);
+    }
+    tracing::info!(
+        gaussians = trainer.gaussians.len(),
+        wall_s = started.elapsed().as_secs_f64(),
+        "stage II: the end state scanned"
+    );
+    crate::splat::ply::write_ply(&path, &trainer.gaussians)?;
+    Ok(trainer.gaussians)
 }
 
 /// The articulation is known: its joints to the log (as arrows, before the

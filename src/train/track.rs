@@ -33,10 +33,12 @@ use crate::render::{crop, region_rows};
 use crate::splat::GaussianSet;
 
 mod contact;
+mod end_scan;
 mod end_state;
 use end_state::JOIN_SHARE;
 
 pub use contact::HandContact;
+pub use end_scan::EndScan;
 
 /// Settings of the node tracker.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -100,6 +102,13 @@ pub struct TrackConfig {
     /// test's, so tuning one moves both), than the tracked pose refitted the same
     /// way. Off = 0.
     pub search_step: f32,
+    /// Iterations of a scan of the end state (stage I's trainer, with its cpu
+    /// settings, on the end-state views: `track::end_scan`), when the capture has
+    /// them and the end phase runs; 0 = none. Its surface judges where an end pose
+    /// puts a part whatever the texture: pieces of a tracked part or of a candidate,
+    /// and parts found on the end state, that their end pose puts farther off it
+    /// than rest leaves them go back to the base (docs/training.md).
+    pub end_scan_iterations: u32,
     /// Static-during-motion detection on nodes: from this many fitted segments on,
     /// a node that has stayed within `freeze_translation` (times the object size)
     /// and `freeze_rotation` (radians) of its start pose at every knot so far is
@@ -176,6 +185,7 @@ impl Default for TrackConfig {
             end_iterations: 300,
             end_alpha_weight: 0.0,
             search_step: std::f32::consts::PI / 12.0,
+            end_scan_iterations: 3000,
             freeze_after_segments: 6,
             freeze_translation: 0.01,
             freeze_rotation: 0.02,
@@ -339,6 +349,10 @@ pub struct NodeTracker {
     /// Where the hand took hold of the object, when the frames carry palms.
     #[serde(default)]
     pub contact: Option<HandContact>,
+    /// The end state's own scan, when the capture has end-state views (not saved:
+    /// the run folder keeps it as end_scan.ply).
+    #[serde(skip)]
+    pub end_scan: Option<EndScan>,
 }
 
 /// The parts found at the end of free tracking, tracked rigidly from then on.
@@ -478,6 +492,7 @@ impl NodeTracker {
             revealed,
             free_knots: Vec::new(),
             contact: None,
+            end_scan: None,
             arap_scale: t.arap_scale * median_spacing,
             object_size: size,
             iterations_per_segment: (config.iterations / Self::planned_fits(t) as u32).max(1),
