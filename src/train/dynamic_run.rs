@@ -359,8 +359,9 @@ fn run_node_track(
         end_views.clear();
     }
     end_views.iter_mut().for_each(|v| v.time = Some(1.0));
-    if !end_views.is_empty() && tracker.config.track.end_scan_iterations > 0 {
-        tracker.end_scan = EndScan::new(&end_state_scan(out, &end_views, &tracker)?, tracker.object_size);
+    if !end_views.is_empty() && tracker.wants_end_scan() {
+        let cameras: Vec<_> = end_views.iter().map(|v| v.camera).collect();
+        tracker.end_scan = EndScan::new(&end_state_scan(out, &end_views, &tracker)?, tracker.object_size, &cameras);
     }
     tracker.refit_end_poses(&end_views);
     tracker.merge_redundant_parts(&frames, &end_views);

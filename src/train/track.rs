@@ -656,6 +656,15 @@ impl NodeTracker {
         self.articulation.as_ref()?.node_part[contact.node as usize].checked_sub(1)
     }
 
+    /// Whether the end phase judges parts on a scan of the end state
+    /// (`track.end_scan_iterations`, `end_scan`): not when the hand held a part,
+    /// whose existence and motion the hand tracking measured (one interaction
+    /// moves the part the hand holds, and discovery is off then as well), so a
+    /// live session does not wait on the scan after the hand-out.
+    pub fn wants_end_scan(&self) -> bool {
+        self.config.track.end_scan_iterations > 0 && self.held_part().is_none()
+    }
+
     /// Segment fits of a whole run: one per knot after the start state, plus the
     /// knots up to discovery again when the parts are refitted from the start.
     fn planned_fits(t: &TrackConfig) -> usize {

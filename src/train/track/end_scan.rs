@@ -8,6 +8,7 @@ use glam::Vec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use super::{NodeTracker, TrackedParts};
+use crate::camera::Camera;
 use crate::splat::GaussianSet;
 
 /// Gaussians at this opacity or above are the scans' surface.
@@ -16,13 +17,19 @@ const SURFACE_OPACITY: f32 = 0.5;
 /// of the object's size of a surface Gaussian of the scan (the scans' own
 /// error: a median of 6-9 mm on objects of about 1 m, measured).
 const REACH_SHARE: f32 = 0.02;
+/// A point is judged only where at least this many end-state views have it in
+/// frame: the scan knows nothing of what the end views never pointed at (a
+/// capture's end state may be seen from a narrow arc), and a part's piece there
+/// agrees with it nowhere.
+const MIN_VIEWS: usize = 2;
 
-/// The end scan's surface, for nearest-neighbour queries.
+/// The end scan's surface, for nearest-neighbour queries, and the views it was trained on.
 #[derive(Clone, Debug)]
 pub struct EndScan {
     tree: ImmutableKdTree<f32, 3>,
     /// The distance within which a point agrees with the surface (world units).
     reach: f32,
+    cameras: Vec<Camera>,
 }
 
 /// How part `p`'s surface agrees with the end scan: the share of its surface
@@ -43,35 +50,45 @@ impl EndScanAgreement {
 }
 
 impl EndScan {
-    /// The surface of `scan` (an end-state 3DGS), `object_size` the start state's
-    /// size; None when it has no surface Gaussian.
-    pub fn new(scan: &GaussianSet, object_size: f32) -> Option<Self> {
+    /// The surface of `scan` (an end-state 3DGS trained on views from `cameras`),
+    /// `object_size` the start state's size; None when it has no surface Gaussian.
+    pub fn new(scan: &GaussianSet, object_size: f32, cameras: &[Camera]) -> Option<Self> {
         let surface: Vec<[f32; 3]> =
             (0..scan.len()).filter(|&i| scan.opacity(i) >= SURFACE_OPACITY).map(|i| scan.mean(i).to_array()).collect();
         if surface.is_empty() {
             return None;
         }
-        Some(Self { tree: ImmutableKdTree::new_from_slice(&surface), reach: REACH_SHARE * object_size })
+        let tree = ImmutableKdTree::new_from_slice(&surface);
+        Some(Self { tree, reach: REACH_SHARE * object_size, cameras: cameras.to_vec() })
     }
 
-    /// The share of `points` within reach of the surface (0 for none).
-    fn share_near(&self, points: impl ExactSizeIterator<Item = Vec3>) -> f32 {
-        let n = points.len();
-        if n == 0 {
-            return 0.0;
-        }
+    /// Whether at least `MIN_VIEWS` of the scan's views have `p` in frame.
+    fn in_view(&self, p: Vec3) -> bool {
+        let in_frame = |c: &Camera| {
+            c.project(p).is_some_and(|(x, y, _)| x >= 0.0 && y >= 0.0 && x < c.width() as f32 && y < c.height() as f32)
+        };
+        self.cameras.iter().filter(|c| in_frame(c)).take(MIN_VIEWS).count() >= MIN_VIEWS
+    }
+
+    /// The share of those of `points` the views see that lie within reach of the
+    /// surface; None when the views see none of them.
+    fn share_near(&self, points: impl Iterator<Item = Vec3>) -> Option<f32> {
         let reach2 = self.reach * self.reach;
-        let near =
-            points.filter(|p| self.tree.nearest_one::<SquaredEuclidean>(&p.to_array()).distance <= reach2).count();
-        near as f32 / n as f32
+        let (mut seen, mut near) = (0usize, 0usize);
+        for p in points.filter(|&p| self.in_view(p)) {
+            seen += 1;
+            near += usize::from(self.tree.nearest_one::<SquaredEuclidean>(&p.to_array()).distance <= reach2);
+        }
+        (seen > 0).then(|| near as f32 / seen as f32)
     }
 }
 
 impl NodeTracker {
     /// How the Gaussians of `nodes` agree with the end scan moved by part `p`'s
     /// end pose in `parts` (the last knot) and at rest; None without an end scan,
-    /// when they have no surface Gaussian, or when the pose moves their surface by
-    /// less than the reach at the median (then the scan cannot tell the two poses apart).
+    /// when they have no surface Gaussian, when the pose moves their surface by
+    /// less than the reach at the median (then the scan cannot tell the two poses
+    /// apart), or when the scan's views see none of it at one of the two poses.
     pub(super) fn end_scan_agreement(
         &self,
         parts: &TrackedParts,
@@ -96,8 +113,8 @@ impl NodeTracker {
             return None;
         }
         Some(EndScanAgreement {
-            at_end_pose: scan.share_near(moved.into_iter()),
-            at_rest: scan.share_near(surface.into_iter()),
+            at_end_pose: scan.share_near(moved.into_iter())?,
+            at_rest: scan.share_near(surface.into_iter())?,
         })
     }
 }
@@ -105,6 +122,7 @@ impl NodeTracker {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::Intrinsics;
     use crate::splat::logit;
 
     /// A unit square of surface points in the plane z = `z`, 1 cm apart.
@@ -119,21 +137,40 @@ mod tests {
         g
     }
 
+    /// Two cameras 2 m above (`x`, 0.5, 0), looking down with a `fov` (radians) wide view.
+    fn cameras_over(x: f32, fov: f32) -> Vec<Camera> {
+        let k = Intrinsics::from_fov_x(64, 64, fov);
+        [-0.05f32, 0.05]
+            .iter()
+            .map(|dx| Camera::look_at(k, Vec3::new(x + dx, 0.5, 2.0), Vec3::new(x, 0.5, 0.0), Vec3::Y))
+            .collect()
+    }
+
     #[test]
     fn points_on_the_scan_agree_and_points_off_it_do_not() {
-        let scan = EndScan::new(&plate(0.0), 1.0).expect("a surface");
+        let scan = EndScan::new(&plate(0.0), 1.0, &cameras_over(0.5, 1.2)).expect("a surface");
         let on = (0..10).map(|i| Vec3::new(0.1 * i as f32, 0.5, 0.01));
         let off = (0..10).map(|i| Vec3::new(0.1 * i as f32, 0.5, 0.05));
-        assert_eq!(scan.share_near(on), 1.0);
-        assert_eq!(scan.share_near(off), 0.0);
+        assert_eq!(scan.share_near(on), Some(1.0));
+        assert_eq!(scan.share_near(off), Some(0.0));
         let half = (0..10).map(|i| Vec3::new(0.1 * i as f32, 0.5, if i < 5 { 0.0 } else { 0.3 }));
-        assert_eq!(scan.share_near(half), 0.5);
+        assert_eq!(scan.share_near(half), Some(0.5));
+    }
+
+    #[test]
+    fn only_what_the_views_saw_is_judged() {
+        // Narrow views over the plate's left edge: its right half was never in frame.
+        let scan = EndScan::new(&plate(0.0), 1.0, &cameras_over(0.1, 0.3)).expect("a surface");
+        let unseen = (0..10).map(|i| Vec3::new(0.9, 0.05 + 0.1 * i as f32, 0.3));
+        assert_eq!(scan.share_near(unseen), None);
+        let seen_and_unseen = [Vec3::new(0.1, 0.5, 0.0), Vec3::new(0.1, 0.5, 0.3), Vec3::new(0.9, 0.5, 0.3)];
+        assert_eq!(scan.share_near(seen_and_unseen.into_iter()), Some(0.5));
     }
 
     #[test]
     fn a_scan_with_no_surface_is_none() {
         let mut faint = GaussianSet::new(0);
         faint.push(Vec3::ZERO, Vec3::splat(-5.0), [1.0, 0.0, 0.0, 0.0], logit(0.1), [0.0; 3], &[]);
-        assert!(EndScan::new(&faint, 1.0).is_none());
+        assert!(EndScan::new(&faint, 1.0, &cameras_over(0.0, 1.0)).is_none());
     }
 }

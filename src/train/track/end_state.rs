@@ -1067,7 +1067,8 @@ mod tests {
     #[test]
     fn the_end_scan_tells_a_right_end_pose_from_a_wrong_one() {
         let (mut tracker, _, end) = plates(1.0);
-        tracker.end_scan = super::super::EndScan::new(&end, tracker.object_size);
+        let cameras: Vec<Camera> = views_of(&end, 1.0, 16).iter().map(|v| v.camera).collect();
+        tracker.end_scan = super::super::EndScan::new(&end, tracker.object_size, &cameras);
         let door: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.x > 0.0)).collect();
         let c = tracker.labelled_centroid(&door, 1);
         let door_nodes: Vec<usize> = (0..door.len()).filter(|&k| door[k] == 1).collect();
