@@ -32,8 +32,9 @@ pub struct EndScan {
     cameras: Vec<Camera>,
 }
 
-/// How part `p`'s surface agrees with the end scan: the share of its surface
-/// Gaussians within reach of the scan's surface at its end pose and at rest.
+/// How start-state Gaussians moved by a part's end pose agree with the end scan:
+/// the share of their surface Gaussians within reach of the scan's surface at
+/// that pose and at rest.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EndScanAgreement {
     pub at_end_pose: f32,

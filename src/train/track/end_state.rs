@@ -120,11 +120,12 @@ impl NodeTracker {
     /// Base nodes `nodes` (a candidate group whose residual was above
     /// `threshold`) made a part, its end pose searched from rest. Its pieces of
     /// about `TRIM_CHUNK_NODES` nodes that explain `views` worse moved by that
-    /// pose than at rest, or that it puts farther off the end scan, go back to the base (a group can hold a part and pieces
-    /// of its neighbours). The part is kept when the search replaced rest and
-    /// what is left looks right where it moved: as a piece of a part found
-    /// before when it explains the end state as well there, else with its own
-    /// path fitted on `frames`. Returns None when refused, else the nodes given back.
+    /// pose than at rest, or that it puts farther off the end scan, go back to
+    /// the base (a group can hold a part and pieces of its neighbours). The part
+    /// is kept when the search replaced rest and what is left looks right where
+    /// it moved: as a piece of a part found before when it explains the end
+    /// state as well there, else with its own path fitted on `frames`. Returns
+    /// None when refused, else the nodes given back.
     fn try_candidate(
         &mut self,
         nodes: &[usize],
@@ -552,9 +553,9 @@ impl NodeTracker {
     /// found on the end state as a part of their own). Of a part kept, the pieces
     /// seen wrong, or put off the end scan's surface, go back. The scan judges
     /// pieces, not whole parts: a tracked part can hold most of its neighbours
-    /// (storage_complex: 477 of a tracked part's 567 nodes went back and were found
-    /// as four other doors and drawers), and only its own pieces land on the scan. Returns the
-    /// nodes it gave back to the base.
+    /// (storage_complex: 477 of a tracked part's 567 nodes went back and were
+    /// found as four other doors and drawers), and only its own pieces land on
+    /// the scan. Returns the nodes it gave back to the base.
     pub fn drop_parts_that_look_wrong(&mut self, end_views: &[TrainView]) -> Vec<bool> {
         let mut returned = vec![false; self.node_centres.len()];
         let Some(parts) = self.articulation.clone() else {
@@ -595,8 +596,8 @@ impl NodeTracker {
                 // A part that looks right as a whole may still carry pieces of
                 // other parts (free tracking gives the moving nodes that joined no
                 // rigid group to the nearest part: storage_complex's drawer took all
-                // six doors and drawers): its pieces wrong where it moved go back,
-                // seen wrong there, or put off the end scan's surface by its motion.
+                // six doors and drawers): its pieces seen wrong where it moved, or
+                // put off the end scan's surface by its motion, go back.
                 let pieces = self.spatial_chunks(&members, (nodes / TRIM_CHUNK_NODES).max(1));
                 let wrong_pieces: Vec<&Vec<usize>> = pieces
                     .iter()
