@@ -409,6 +409,11 @@ impl TrackedParts {
         extract_joint(&self.poses[self.poses.len() - 1][p].to_rigid(c), c.as_dvec3())
     }
 
+    /// The nodes labelled `label` (0 = base, p + 1 = part p).
+    fn nodes_labelled(&self, label: usize) -> Vec<usize> {
+        (0..self.node_part.len()).filter(|&k| self.node_part[k] == label).collect()
+    }
+
     /// Whether part `p` (from 0) was found on the end state.
     fn is_found_on_end_state(&self, p: usize) -> bool {
         self.found_on_end_state.get(p).copied().unwrap_or(false)
@@ -1167,9 +1172,7 @@ impl NodeTracker {
         let counts = self.binding_counts();
         loop {
             let last = parts.poses.last().expect("the start state");
-            let nodes: Vec<Vec<usize>> = (1..=parts.centres.len())
-                .map(|p| (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == p).collect())
-                .collect();
+            let nodes: Vec<Vec<usize>> = (1..=parts.centres.len()).map(|p| parts.nodes_labelled(p)).collect();
             let moved = |p: usize, k: usize| last[p].apply(parts.centres[p], self.node_centres[k]);
             let joints: Vec<Option<crate::motion::JointEstimate>> =
                 (0..nodes.len()).map(|p| (!nodes[p].is_empty()).then(|| parts.end_joint(p))).collect();

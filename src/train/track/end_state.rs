@@ -483,8 +483,7 @@ impl NodeTracker {
         let (seen, median) = self.residual_where_moved(p, views);
         let parts = self.articulation.as_ref().expect("the part judged");
         let joint = parts.end_joint(p);
-        let members: Vec<usize> = (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == p + 1).collect();
-        let scan = self.end_scan_agreement(parts, p, &members);
+        let scan = self.end_scan_agreement(parts, p, &parts.nodes_labelled(p + 1));
         let passes = 2 * seen >= candidate_nodes
             && (median < threshold || median < AT_REST_SHARE * at_rest)
             && self.axis_on_part(p, &joint)
@@ -539,8 +538,7 @@ impl NodeTracker {
     fn residual_where_moved(&self, p: usize, views: &[&TrainView]) -> (usize, f32) {
         let parts = self.articulation.as_ref().expect("the part judged");
         let residual = self.node_residuals(parts, p + 1, views, true);
-        let members: Vec<usize> = (0..residual.len()).filter(|&k| parts.node_part[k] == p + 1).collect();
-        seen_median(&members, &residual)
+        seen_median(&parts.nodes_labelled(p + 1), &residual)
     }
 
     /// The tracked parts judged on the end state as a part found there is
@@ -575,7 +573,7 @@ impl NodeTracker {
         let mut node_part = parts.node_part.clone();
         let held = self.held_part();
         for p in (0..parts.centres.len()).filter(|&p| Some(p) != held) {
-            let members: Vec<usize> = (0..node_part.len()).filter(|&k| parts.node_part[k] == p + 1).collect();
+            let members = parts.nodes_labelled(p + 1);
             let nodes = members.len();
             let residual = self.node_residuals(&parts, p + 1, &views, true);
             let (seen, median) = seen_median(&members, &residual);
@@ -603,9 +601,8 @@ impl NodeTracker {
                     .iter()
                     .filter(|piece| {
                         let (seen, median) = seen_median(piece, &residual);
-                        let scan = self.end_scan_agreement(&parts, p, piece);
                         (2 * seen >= piece.len() && median >= threshold)
-                            || scan.is_some_and(|a| a.contradicts_end_pose())
+                            || self.end_scan_agreement(&parts, p, piece).is_some_and(|a| a.contradicts_end_pose())
                     })
                     .collect();
                 if !wrong_pieces.is_empty() {
