@@ -375,6 +375,7 @@ fn run_node_track(
     // Parts the tracking never grouped, found where the end state shows the start state moved.
     if tracker.discover_on_end_state(&frames, &end_views, &returned) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
+        tracker.refit_grown_parts(&frames, &end_views);
     }
     if tracker.clean_parts(&frames, &end_views) > 0 {
         tracker.refit_end_poses(&end_views);

@@ -364,11 +364,12 @@ pub struct TrackedParts {
     pub centres: Vec<Vec3>,
     /// Per knot, each part's pose about its centre.
     pub poses: Vec<Vec<NodePose>>,
-    /// Per part, whether it was found on the end state (`end_state`), where its
-    /// own search settled its end pose; absent entries are tracked parts. Not
-    /// checkpointed: set and read only in the end phase, which a resume runs again.
+    /// Per part found on the end state (`end_state`), where its own search
+    /// settled its end pose: how many nodes it had when searched (pieces may
+    /// join it later). None or absent: a tracked part. Not checkpointed: set and
+    /// read only in the end phase, which a resume runs again.
     #[serde(skip)]
-    pub found_on_end_state: Vec<bool>,
+    pub found_on_end_state: Vec<Option<usize>>,
 }
 
 impl TrackedParts {
@@ -399,7 +400,7 @@ impl TrackedParts {
             node_part: node_part.iter().map(|&l| renumber(l)).collect(),
             centres: kept.iter().map(|&p| self.centres[p - 1]).collect(),
             poses: self.poses.iter().map(|k| kept.iter().map(|&p| k[p - 1]).collect()).collect(),
-            found_on_end_state: kept.iter().map(|&p| self.is_found_on_end_state(p - 1)).collect(),
+            found_on_end_state: kept.iter().map(|&p| self.found_on_end_state.get(p - 1).copied().flatten()).collect(),
         }
     }
 
@@ -416,7 +417,7 @@ impl TrackedParts {
 
     /// Whether part `p` (from 0) was found on the end state.
     fn is_found_on_end_state(&self, p: usize) -> bool {
-        self.found_on_end_state.get(p).copied().unwrap_or(false)
+        self.found_on_end_state.get(p).is_some_and(Option::is_some)
     }
 
     /// The node poses that carry every node of each part with its part's pose
@@ -2691,7 +2692,7 @@ mod tests {
             node_part: vec![1, 2],
             centres: tracker.node_centres.clone(),
             poses: vec![vec![NodePose::IDENTITY; 2]; 2],
-            found_on_end_state: vec![false, true],
+            found_on_end_state: vec![None, Some(1)],
         };
         tracker.knots = vec![vec![NodePose::IDENTITY; 2]; 2];
         tracker.gains = vec![vec![0.0; 2]; 2];

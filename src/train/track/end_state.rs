@@ -56,6 +56,11 @@ const HINGE_QUANTILE: f32 = 0.01;
 const HINGE_MIN_TURN: f64 = 0.1;
 /// Tracked parts and candidates are judged on the end state in pieces of about this many nodes.
 const TRIM_CHUNK_NODES: usize = 16;
+/// A part found on the end state has its end pose fitted again once pieces
+/// joined it until it holds this many times the nodes its pose was searched on:
+/// then its pose is a minority piece's. A refit is stochastic and does not quite
+/// settle; at 1.5 it refitted a storage_complex drawer from 1.0 to 2.8 deg.
+const REFIT_GROWTH: f32 = 2.0;
 
 impl NodeTracker {
     /// Look for parts among the base's nodes on `end_views` (time 1) and add
@@ -115,6 +120,39 @@ impl NodeTracker {
             (self.articulation, self.knots) = tracked;
         }
         added
+    }
+
+    /// Fit again, on `end_views`, the end poses of the parts found on the end
+    /// state that have grown to `REFIT_GROWTH` times the nodes their pose was
+    /// searched on (pieces that joined them, parts of the same joint merged in),
+    /// then their paths on `frames`. A pose searched on a part's first piece fits
+    /// that piece: the held-out nightstand's drawer was searched on a 30-node
+    /// piece, ended with 114 nodes, and kept the piece's 3.4 deg tilt. Returns
+    /// how many parts were refitted.
+    pub fn refit_grown_parts(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
+        let Some(parts) = self.articulation.as_mut() else {
+            return 0;
+        };
+        let grown: Vec<usize> =
+            (0..parts.centres.len())
+                .filter(|&p| {
+                    parts.found_on_end_state.get(p).copied().flatten().is_some_and(|searched| {
+                        parts.nodes_labelled(p + 1).len() as f32 >= REFIT_GROWTH * searched as f32
+                    })
+                })
+                .collect();
+        if grown.is_empty() {
+            return 0;
+        }
+        for &p in &grown {
+            parts.found_on_end_state[p] = Some(parts.nodes_labelled(p + 1).len());
+        }
+        tracing::info!(parts = ?grown.iter().map(|p| p + 1).collect::<Vec<_>>(), "stage II: parts that grew since their end pose was searched, fitted again");
+        self.refit_end_poses_and(end_views, &grown);
+        for &p in &grown {
+            self.fit_path(p, frames);
+        }
+        grown.len()
     }
 
     /// Base nodes `nodes` (a candidate group whose residual was above
@@ -289,8 +327,8 @@ impl NodeTracker {
         nodes.iter().for_each(|&k| parts.node_part[k] = p + 1);
         parts.centres.push(self.labelled_centroid(&parts.node_part, p + 1));
         parts.poses.iter_mut().for_each(|k| k.push(NodePose::IDENTITY));
-        parts.found_on_end_state.resize(p, false);
-        parts.found_on_end_state.push(true);
+        parts.found_on_end_state.resize(p, None);
+        parts.found_on_end_state.push(Some(nodes.len()));
         parts
     }
 
@@ -766,9 +804,12 @@ fn largest_connected(graph: &[Vec<usize>], members: &[usize]) -> Vec<usize> {
 }
 
 /// The residual above which a node is wrong: `MIN_RESIDUAL`, or `RESIDUAL_RATIO`
-/// times the median of `sorted` (the seen base nodes' residuals, ascending).
+/// times the lower quartile of `sorted` (the seen base nodes' residuals,
+/// ascending). Not the median: where the moving part is larger than the base
+/// (a laptop's screen, 1341 of its 2048 nodes), most of the base is wrong, and
+/// 3 x its median (0.37) counted no node.
 fn residual_threshold(sorted: &[f32]) -> f32 {
-    MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 2])
+    MIN_RESIDUAL.max(RESIDUAL_RATIO * sorted[sorted.len() / 4])
 }
 
 /// Part `p`'s poses (about its centre) at each tenth (`PATH_STEPS`) of the
@@ -1154,6 +1195,44 @@ mod tests {
         let parts = tracker.articulation.clone().expect("parts");
         assert_eq!(parts.centres.len(), 1);
         assert_eq!(parts.node_part.iter().map(|&l| l == 1).collect::<Vec<_>>(), door_nodes, "the door kept whole");
+    }
+
+    #[test]
+    fn most_of_the_base_wrong_still_counts_as_wrong() {
+        // A quarter of the base right (0.005), the rest a moving part left in it (0.2).
+        let mut residuals = vec![0.005; 30];
+        residuals.extend(vec![0.2; 70]);
+        let threshold = residual_threshold(&residuals);
+        assert!(threshold < 0.2, "the part's nodes count: threshold {threshold}");
+        assert_eq!(threshold, MIN_RESIDUAL);
+        // A base that is noisy all over (0.05 everywhere) counts nothing.
+        assert!(residual_threshold(&[0.05; 100]) > 0.05);
+    }
+
+    #[test]
+    fn a_found_part_that_grew_has_its_end_pose_fitted_again() {
+        let (mut tracker, door, end) = plates(1.0);
+        let end_views = views_of(&end, 1.0, 16);
+        let node_part: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.x > 0.0)).collect();
+        let door_nodes = node_part.iter().filter(|&&l| l == 1).count();
+        let c = tracker.labelled_centroid(&node_part, 1);
+        // The door found on the end state, its end pose 6 degrees short of the truth.
+        let mut parts =
+            parts_at(&tracker, &node_part, &[turn_about(-std::f32::consts::FRAC_PI_2 + 0.1, Vec3::ZERO, c)]);
+        parts.found_on_end_state = vec![Some(door_nodes)];
+        tracker.set_articulation(parts.clone());
+        let before = median_error(&tracker, &door, &end, 1.0);
+        assert!(before > 0.01, "the pose is off: {before}");
+        assert_eq!(tracker.refit_grown_parts(&[], &end_views), 0, "searched on the nodes it holds: kept");
+        assert_eq!(median_error(&tracker, &door, &end, 1.0), before);
+        // Searched on a third of the nodes it holds now.
+        parts.found_on_end_state = vec![Some(door_nodes / 3)];
+        tracker.set_articulation(parts);
+        assert_eq!(tracker.refit_grown_parts(&[], &end_views), 1);
+        let after = median_error(&tracker, &door, &end, 1.0);
+        assert!(after < 0.5 * before, "fitted again: {before} -> {after}");
+        let found = tracker.articulation.as_ref().expect("parts").found_on_end_state[0];
+        assert_eq!(found, Some(door_nodes), "now searched on the nodes it holds");
     }
 
     #[test]
