@@ -400,7 +400,7 @@ impl TrackedParts {
             node_part: node_part.iter().map(|&l| renumber(l)).collect(),
             centres: kept.iter().map(|&p| self.centres[p - 1]).collect(),
             poses: self.poses.iter().map(|k| kept.iter().map(|&p| k[p - 1]).collect()).collect(),
-            found_on_end_state: kept.iter().map(|&p| self.found_on_end_state.get(p - 1).copied().flatten()).collect(),
+            found_on_end_state: kept.iter().map(|&p| self.searched_nodes(p - 1)).collect(),
         }
     }
 
@@ -415,9 +415,15 @@ impl TrackedParts {
         (0..self.node_part.len()).filter(|&k| self.node_part[k] == label).collect()
     }
 
+    /// How many nodes part `p` (from 0) had when its end pose was searched on the
+    /// end state; None for a tracked part.
+    fn searched_nodes(&self, p: usize) -> Option<usize> {
+        self.found_on_end_state.get(p).copied().flatten()
+    }
+
     /// Whether part `p` (from 0) was found on the end state.
     fn is_found_on_end_state(&self, p: usize) -> bool {
-        self.found_on_end_state.get(p).is_some_and(Option::is_some)
+        self.searched_nodes(p).is_some()
     }
 
     /// The node poses that carry every node of each part with its part's pose

@@ -133,19 +133,20 @@ impl NodeTracker {
         let Some(parts) = self.articulation.as_mut() else {
             return 0;
         };
-        let grown: Vec<usize> =
-            (0..parts.centres.len())
-                .filter(|&p| {
-                    parts.found_on_end_state.get(p).copied().flatten().is_some_and(|searched| {
-                        parts.nodes_labelled(p + 1).len() as f32 >= REFIT_GROWTH * searched as f32
-                    })
-                })
-                .collect();
+        let mut grown = Vec::new();
+        for p in 0..parts.centres.len() {
+            let Some(searched) = parts.searched_nodes(p) else {
+                continue;
+            };
+            let holds = parts.nodes_labelled(p + 1).len();
+            if holds as f32 >= REFIT_GROWTH * searched as f32 {
+                // Searched again now, on the nodes it holds.
+                parts.found_on_end_state[p] = Some(holds);
+                grown.push(p);
+            }
+        }
         if grown.is_empty() {
             return 0;
-        }
-        for &p in &grown {
-            parts.found_on_end_state[p] = Some(parts.nodes_labelled(p + 1).len());
         }
         tracing::info!(parts = ?grown.iter().map(|p| p + 1).collect::<Vec<_>>(), "stage II: parts that grew since their end pose was searched, fitted again");
         self.refit_end_poses_and(end_views, &grown);
