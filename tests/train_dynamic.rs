@@ -182,6 +182,18 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
     let a = std::fs::read(root.join("full").join("track.bin")).expect("track");
     let b = std::fs::read(root.join("cut").join("track.bin")).expect("track");
     assert_eq!(a, b, "a resumed run must repeat the uninterrupted one exactly");
+    // Interrupted once the tracking is done (during the end scan or the end
+    // phase), it stops there too, and its resumption ends as the uninterrupted run.
+    let late = AtomicBool::new(false);
+    let stopped =
+        run("late", &RunControl { resume: false, interrupt: &late, viz: &viz, backend: Backend::Cpu }, Some(60));
+    assert!(matches!(stopped, DynamicOutcome::Interrupted(60)), "the end phase stops on the interrupt");
+    assert!(!root.join("late").join("track.bin").exists(), "an interrupted end phase writes no result");
+    let go_on = AtomicBool::new(false);
+    let resumed = run("late", &RunControl { resume: true, interrupt: &go_on, viz: &viz, backend: Backend::Cpu }, None);
+    assert!(matches!(resumed, DynamicOutcome::Finished { .. }));
+    let c = std::fs::read(root.join("late").join("track.bin")).expect("track");
+    assert_eq!(a, c, "a run resumed in its end phase must repeat the uninterrupted one exactly");
     // Resuming with another configuration is refused, naming the checkpoint.
     let mut other = dyn_cfg.clone();
     other.track.nodes += 1;

@@ -319,39 +319,6 @@ fn run_node_track(
     };
     tracker.backend = control.backend.clone();
     tracing::info!(backend = tracker.backend.describe(), "stage II");
-    let started = Instant::now();
-    let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();
-    let per_segment = tracker.iterations_per_segment;
-    while tracker.segments_done < tracker.segments() {
-        if control.interrupt.load(Ordering::SeqCst) {
-            save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
-            return Ok(DynamicOutcome::Interrupted(tracker.fits_done as u32 * per_segment));
-        }
-        let fit = tracker.fit_next(&frames);
-        let step = DynamicStep {
-            iteration: fit.fits_done as u32 * per_segment,
-            loss: fit.loss,
-            psnr: fit.psnr,
-            static_count: tracker.gaussians.len(),
-            moving_count: 0,
-            sdmd_moved: 0,
-        };
-        log_step(control.viz, &step);
-        if tracker
-            .knots
-            .last()
-            .is_some_and(|p| p.iter().any(|p| !(p.translation.is_finite() && p.rotation.is_finite())))
-        {
-            return Err(Error::Other(format!("stage II tracking diverged in segment {}", fit.segments_done)));
-        }
-        // One segment is a few seconds of work: checkpoint after each.
-        if fit.segments_done < tracker.segments() {
-            save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
-            log_tracked(control.viz, &tracker, &frames);
-        }
-        progress(StageTwoProgress::Step(&step));
-    }
-    save_track_checkpoint(&checkpoint, &tracker, elapsed(&started))?;
     // The end state seen from around the object (the frames after the hand lets
     // go), when the capture has it, at time 1: the parts' end poses are fitted on
     // it, and it is part of the evidence the parts are judged on.
@@ -359,23 +326,64 @@ fn run_node_track(
         end_views.clear();
     }
     end_views.iter_mut().for_each(|v| v.time = Some(1.0));
-    if !end_views.is_empty() && tracker.wants_end_scan() {
-        let cameras: Vec<_> = end_views.iter().map(|v| v.camera).collect();
-        tracker.end_scan = EndScan::new(&end_state_scan(out, &end_views, &tracker)?, tracker.object_size, &cameras);
+    let scan_settings = (!end_views.is_empty() && tracker.wants_end_scan()).then(|| EndScanSettings {
+        iterations: tracker.config.track.end_scan_iterations,
+        seed: tracker.config.seed,
+        backend: tracker.backend.clone(),
+    });
+    let started = Instant::now();
+    let elapsed = |started: &Instant| elapsed_before + started.elapsed().as_secs_f64();
+    // The end scan needs only the end views: it trains beside the tracking, on the
+    // core the tracking's serial stretches leave idle, and stops when the tracking
+    // stops early.
+    let tracking_stopped = AtomicBool::new(false);
+    let (tracked, scan) = std::thread::scope(|s| {
+        let stop = || control.interrupt.load(Ordering::SeqCst) || tracking_stopped.load(Ordering::SeqCst);
+        let views = &end_views;
+        let scan = scan_settings.map(|settings| s.spawn(move || end_state_scan(out, views, settings, stop)));
+        let tracked = track_frames(&mut tracker, &frames, &checkpoint, control, &mut progress, &|| elapsed(&started));
+        if !matches!(tracked, Ok(true)) {
+            tracking_stopped.store(true, Ordering::SeqCst);
+        }
+        let scan = scan.map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)));
+        (tracked, scan)
+    });
+    let per_segment = tracker.iterations_per_segment;
+    let interrupted = |tracker: &NodeTracker| DynamicOutcome::Interrupted(tracker.fits_done as u32 * per_segment);
+    if !tracked? {
+        return Ok(interrupted(&tracker));
     }
+    if let Some(scan) = scan {
+        let Some(scan) = scan? else { return Ok(interrupted(&tracker)) };
+        let cameras: Vec<_> = end_views.iter().map(|v| v.camera).collect();
+        tracker.end_scan = EndScan::new(&scan, tracker.object_size, &cameras);
+    }
+    // The end phase is not checkpointed (a resumed run does it again from the
+    // tracking's checkpoint): an interrupt stops it between its steps (and
+    // between the parts searched, the candidates tried).
+    let stop = || control.interrupt.load(Ordering::SeqCst);
     tracker.refit_end_poses(&end_views);
     tracker.merge_redundant_parts(&frames, &end_views);
+    if stop() {
+        return Ok(interrupted(&tracker));
+    }
     // Merge first, so that pieces that explain nothing are gone before a searched
     // pose lets them explain content the start state lacks (docs/training.md).
-    if tracker.search_end_poses(&frames, &end_views) > 0 {
+    if tracker.search_end_poses(&frames, &end_views, &stop) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
+    }
+    if stop() {
+        return Ok(interrupted(&tracker));
     }
     // A tracked part that still looks wrong where it moved is not a part.
     let returned = tracker.drop_parts_that_look_wrong(&end_views);
     // Parts the tracking never grouped, found where the end state shows the start state moved.
-    if tracker.discover_on_end_state(&frames, &end_views, &returned) > 0 {
+    if tracker.discover_on_end_state(&frames, &end_views, &returned, &stop) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);
         tracker.refit_grown_parts(&frames, &end_views);
+    }
+    if stop() {
+        return Ok(interrupted(&tracker));
     }
     if tracker.clean_parts(&frames, &end_views) > 0 {
         tracker.refit_end_poses(&end_views);
@@ -420,23 +428,81 @@ fn run_node_track(
     finish(run, control.viz, &base, parts, &part_sets, summary)
 }
 
-/// The end state scanned as the start state was (stage I's trainer and its cpu
-/// settings for `track.end_scan_iterations`, the run's seed, on `end_views`):
+/// Track the motion `frames` segment by segment from where `tracker` stands,
+/// checkpointing after each; false when the interrupt stopped it (after a checkpoint).
+fn track_frames(
+    tracker: &mut NodeTracker,
+    frames: &[TrainView],
+    checkpoint: &Path,
+    control: &RunControl,
+    progress: &mut impl FnMut(StageTwoProgress<'_>),
+    elapsed: &dyn Fn() -> f64,
+) -> Result<bool> {
+    let per_segment = tracker.iterations_per_segment;
+    while tracker.segments_done < tracker.segments() {
+        if control.interrupt.load(Ordering::SeqCst) {
+            save_track_checkpoint(checkpoint, tracker, elapsed())?;
+            return Ok(false);
+        }
+        let fit = tracker.fit_next(frames);
+        let step = DynamicStep {
+            iteration: fit.fits_done as u32 * per_segment,
+            loss: fit.loss,
+            psnr: fit.psnr,
+            static_count: tracker.gaussians.len(),
+            moving_count: 0,
+            sdmd_moved: 0,
+        };
+        log_step(control.viz, &step);
+        if tracker
+            .knots
+            .last()
+            .is_some_and(|p| p.iter().any(|p| !(p.translation.is_finite() && p.rotation.is_finite())))
+        {
+            return Err(Error::Other(format!("stage II tracking diverged in segment {}", fit.segments_done)));
+        }
+        // One segment is a few seconds of work: checkpoint after each.
+        if fit.segments_done < tracker.segments() {
+            save_track_checkpoint(checkpoint, tracker, elapsed())?;
+            log_tracked(control.viz, tracker, frames);
+        }
+        progress(StageTwoProgress::Step(&step));
+    }
+    save_track_checkpoint(checkpoint, tracker, elapsed())?;
+    Ok(true)
+}
+
+/// How the end state is scanned: stage I's trainer and its cpu settings for
+/// `track.end_scan_iterations`, the run's seed.
+struct EndScanSettings {
+    iterations: u32,
+    seed: u64,
+    backend: crate::render::Backend,
+}
+
+/// The end state scanned as the start state was (`settings`, on `end_views`):
 /// out/end_scan.ply when a run of this folder wrote it before (a resumed run),
-/// else trained and written there.
-fn end_state_scan(out: &Path, end_views: &[TrainView], tracker: &NodeTracker) -> Result<GaussianSet> {
+/// else trained and written there; None when `stop` said so first.
+fn end_state_scan(
+    out: &Path,
+    end_views: &[TrainView],
+    settings: EndScanSettings,
+    stop: impl Fn() -> bool,
+) -> Result<Option<GaussianSet>> {
     let path = out.join("end_scan.ply");
     if path.exists() {
-        return crate::splat::ply::read_ply(&path);
+        return crate::splat::ply::read_ply(&path).map(Some);
     }
     let cpu = StaticConfig::cpu();
-    let iterations = tracker.config.track.end_scan_iterations;
-    let mut config = cpu.compressed(f64::from(iterations) / f64::from(cpu.iterations));
-    config.seed = tracker.config.seed;
+    let mut config = cpu.compressed(f64::from(settings.iterations) / f64::from(cpu.iterations));
+    config.seed = settings.seed;
     let mut trainer = GaussianTrainer::new(config, end_views, None)?;
-    trainer.backend = tracker.backend.clone();
+    trainer.backend = settings.backend;
     let started = Instant::now();
     while trainer.iteration < trainer.config.iterations {
+        if stop() {
+            return Ok(None);
+        }
         trainer.step(end_views);
     }
     tracing::info!(
@@ -445,7 +511,7 @@ fn end_state_scan(out: &Path, end_views: &[TrainView], tracker: &NodeTracker) ->
         "stage II: the end state scanned"
     );
     crate::splat::ply::write_ply(&path, &trainer.gaussians)?;
-    Ok(trainer.gaussians)
+    Ok(Some(trainer.gaussians))
 }
 
 /// The articulation is known: its joints to the log (as arrows, before the

@@ -1537,12 +1537,20 @@ impl NodeTracker {
     /// returns the parts whose end pose a searched one replaced. Every part's turn
     /// starts with a refit of the tracked parts' end poses and its own (the
     /// baseline its candidates are refitted against), so the end poses are
-    /// refitted even when it returns 0.
-    pub fn search_end_poses(&mut self, frames: &[TrainView], end_views: &[TrainView]) -> usize {
+    /// refitted even when it returns 0. Stops before the next part once `stop` says so.
+    pub fn search_end_poses(
+        &mut self,
+        frames: &[TrainView],
+        end_views: &[TrainView],
+        stop: &dyn Fn() -> bool,
+    ) -> usize {
         let parts = self.articulation.as_ref().map_or(0, |a| a.centres.len());
         let mut changed = 0;
         let held = self.held_part();
         for p in (0..parts).filter(|&p| Some(p) != held) {
+            if stop() {
+                break;
+            }
             changed += usize::from(self.search_part_end_pose(p, frames, end_views, false));
         }
         changed
@@ -2424,10 +2432,10 @@ mod tests {
         let mut local = tracker.clone();
         local.refit_end_poses(&views).expect("a part to refit");
         assert!(error(&local) > 0.2, "the local refit alone should not reach the truth: {}", error(&local));
-        assert_eq!(tracker.search_end_poses(&[], &views), 1, "the searched pose replaces the tracked one");
+        assert_eq!(tracker.search_end_poses(&[], &views, &|| false), 1, "the searched pose replaces the tracked one");
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after the search: {}", error(&tracker));
         // From the pose found, no grid hypothesis explains the end state clearly better.
-        assert_eq!(tracker.search_end_poses(&[], &views), 0, "a second search keeps the pose it found");
+        assert_eq!(tracker.search_end_poses(&[], &views, &|| false), 0, "a second search keeps the pose it found");
         assert!(error(&tracker) < 0.03, "largest door Gaussian offset after a second search: {}", error(&tracker));
     }
 
@@ -2475,7 +2483,7 @@ mod tests {
         let k = Intrinsics { width: 48, height: 48, fx: 45.0, fy: 45.0, cx: 24.0, cy: 24.0 };
         let views = ring_views(&true_set, k, 1.6, 1.4, 0.3);
         tracker.articulation = Some(parts);
-        assert_eq!(tracker.search_end_poses(&[], &views), 1, "the searched pose replaces the tracked one");
+        assert_eq!(tracker.search_end_poses(&[], &views, &|| false), 1, "the searched pose replaces the tracked one");
         let now = tracker.deformed(&tracker.knots[1], &vec![0.0; n]);
         let error = members.iter().map(|&i| now.mean(i).distance(true_set.mean(i))).fold(0.0f32, f32::max);
         assert!(error < 0.02, "largest slider Gaussian offset after the search: {error}");

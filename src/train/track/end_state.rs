@@ -71,7 +71,14 @@ impl NodeTracker {
     /// Not when the hand held a part: one interaction moves the part the hand
     /// holds, and what else the end state shows differently is content the start
     /// state lacked (an oven's inside, measured: an 11-degree extra part).
-    pub fn discover_on_end_state(&mut self, frames: &[TrainView], end_views: &[TrainView], returned: &[bool]) -> usize {
+    /// Stops before the next candidate once `stop` says so.
+    pub fn discover_on_end_state(
+        &mut self,
+        frames: &[TrainView],
+        end_views: &[TrainView],
+        returned: &[bool],
+        stop: &dyn Fn() -> bool,
+    ) -> usize {
         if end_views.is_empty()
             || self.config.track.search_step <= 0.0
             || self.config.track.end_iterations == 0
@@ -93,6 +100,9 @@ impl NodeTracker {
         let mut tried = vec![false; self.node_centres.len()];
         let mut added = 0;
         for _ in 0..MAX_CANDIDATES {
+            if stop() {
+                break;
+            }
             let trial = self.articulation.clone().expect("parts set above");
             let residual = self.node_residuals(&trial, 0, &views, false);
             let (groups, threshold) = self.candidate_groups(&trial, &residual, &tried, returned);
@@ -957,7 +967,7 @@ mod tests {
         let end_views = views_of(&end, 1.0, 16);
         let frames = views_of(&half, 0.5, 1);
         let none = vec![false; tracker.node_centres.len()];
-        assert_eq!(tracker.discover_on_end_state(&frames, &end_views, &none), 1, "one part found");
+        assert_eq!(tracker.discover_on_end_state(&frames, &end_views, &none, &|| false), 1, "one part found");
         let parts = tracker.articulation.clone().expect("parts");
         assert_eq!(parts.centres.len(), 1);
         let members = tracker.gaussians_labelled(&parts.node_part, 1);
@@ -1030,7 +1040,7 @@ mod tests {
         let (mut tracker, _, rest) = plates(0.0);
         let end_views = views_of(&rest, 1.0, 16);
         let none = vec![false; tracker.node_centres.len()];
-        assert_eq!(tracker.discover_on_end_state(&views_of(&rest, 0.5, 1), &end_views, &none), 0);
+        assert_eq!(tracker.discover_on_end_state(&views_of(&rest, 0.5, 1), &end_views, &none, &|| false), 0);
         assert!(tracker.articulation.is_none(), "no part, and the free trajectories kept");
     }
 
