@@ -67,6 +67,19 @@ pub struct PredictedJoint {
     pub translation: DVec3,
 }
 
+impl PredictedJoint {
+    /// A part's joint, fitted from its motion `motion`, as a prediction: the
+    /// twin's motion along it. A prismatic part slides along its axis unturned
+    /// (what leftover rotation the fit had is not the joint's); a revolute one
+    /// moves as fitted.
+    pub fn of_part(joint: JointEstimate, motion: &crate::motion::Rigid) -> Self {
+        match joint.kind {
+            JointKind::Revolute => Self { joint, rotation: motion.r, translation: motion.t },
+            JointKind::Prismatic => Self { joint, rotation: DMat3::IDENTITY, translation: joint.axis * joint.amount },
+        }
+    }
+}
+
 /// Errors of one matched joint.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JointErrors {

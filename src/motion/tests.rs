@@ -59,7 +59,7 @@ fn analyse(c: &Case) -> (Vec<RigidGroup>, Vec<usize>, crate::eval::ArticulationR
         .map(|g| {
             let centroid = g.members.iter().map(|&i| c.positions[0][i]).sum::<DVec3>() / g.members.len() as f64;
             let m = g.motions.last().expect("a motion to t = 1");
-            PredictedJoint { joint: extract_joint(m, centroid), rotation: m.r, translation: m.t }
+            PredictedJoint::of_part(extract_joint(m, centroid), m)
         })
         .collect();
     let report = match_joints(&pred, &c.gt);
@@ -124,6 +124,22 @@ fn revolute_joint_extraction_is_exact_on_an_exact_motion() {
     let p = extract_joint(&Rigid { r: glam::DMat3::IDENTITY, t: DVec3::new(0.0, -0.35, 0.0) }, DVec3::ZERO);
     assert_eq!(p.kind, JointKind::Prismatic);
     assert!((p.axis - DVec3::NEG_Y).length() < 1e-12 && (p.amount - 0.35).abs() < 1e-12);
+}
+
+#[test]
+fn a_prismatic_axis_is_the_centroids_displacement_whatever_the_origin() {
+    // A drawer 0.36 m from the z axis slides 0.2 m along -y while its fit turns
+    // it 2 degrees about z through its own centroid: the slide is the centroid's
+    // displacement; the origin's translation is 13 mm off it, 1.9 deg off -y.
+    let centroid = DVec3::new(0.3, -0.2, 0.2);
+    let slide = DVec3::new(0.0, -0.2, 0.0);
+    let r = glam::DMat3::from_axis_angle(DVec3::Z, 2f64.to_radians());
+    let m = Rigid { r, t: centroid + slide - r * centroid };
+    let j = extract_joint(&m, centroid);
+    assert_eq!(j.kind, JointKind::Prismatic);
+    assert!(j.axis.angle_between(DVec3::NEG_Y) < 1e-9, "axis {:?}", j.axis);
+    assert!((j.amount - 0.2).abs() < 1e-12, "amount {}", j.amount);
+    assert!(m.t.angle_between(DVec3::NEG_Y).to_degrees() > 1.5, "the origin's translation is off the slide");
 }
 
 #[test]

@@ -666,10 +666,7 @@ fn finish(
     let gt_report = if let Some(gt_path) = gt_path {
         let gt: Vec<_> =
             crate::synth::JointsFile::load(&gt_path)?.joints.iter().map(crate::eval::twin::gt_joint).collect();
-        let pred: Vec<PredictedJoint> = parts
-            .iter()
-            .map(|p| PredictedJoint { joint: p.joint, rotation: p.motion.r, translation: p.motion.t })
-            .collect();
+        let pred: Vec<PredictedJoint> = parts.iter().map(|p| PredictedJoint::of_part(p.joint, &p.motion)).collect();
         Some(match_joints(&pred, &gt))
     } else {
         None

@@ -462,7 +462,8 @@ pub(crate) fn parts_from_trajectories(
             let members: Vec<usize> = g.members.iter().map(|&i| index[i]).collect();
             let joint = extract_joint(&m, centroid);
             // A group that does not move is static content, not a part.
-            let static_like = m.angle() <= config.sdmd_max_rotation && m.t.length() <= config.sdmd_max_translation;
+            let moved = (m.apply(centroid) - centroid).length();
+            let static_like = m.angle() <= config.sdmd_max_rotation && moved <= config.sdmd_max_translation;
             (!static_like).then_some(PartEstimate { members, joint, motion: m })
         })
         .collect();

@@ -1209,6 +1209,44 @@ mod tests {
     }
 
     #[test]
+    fn parts_that_slide_alike_merge_only_where_the_pixels_agree() {
+        // A plate with pieces pulled out of it along z by `slides` (x from 0.3 to
+        // `cut`, and from `cut` to 0.9), tracked at `tracked`, with the check views
+        // of the truth.
+        let setup = |cut: f32, slides: [f32; 2], tracked: [f32; 2]| {
+            let (mut tracker, _, rest) = panels(-0.9, 0.9, 2400, 256, &[], 1.0);
+            tracker.config.track.knots = 3;
+            let label = |x: f32| if x > cut { 2 } else { usize::from(x > 0.3) };
+            let node_part: Vec<usize> = tracker.node_centres.iter().map(|c| label(c.x)).collect();
+            let at = |t: f32| {
+                let mut set = rest.clone();
+                for i in 0..set.len() {
+                    if let Some(p) = node_part[tracker.binding[i] as usize].checked_sub(1) {
+                        set.means[3 * i + 2] += slides[p] * t;
+                    }
+                }
+                set
+            };
+            let check_views = (views_of(&at(0.5), 0.5, 4), views_of(&at(1.0), 1.0, 8));
+            let end_poses = tracked.map(|s| NodePose { rotation: Quat::IDENTITY, translation: Vec3::Z * s });
+            tracker.set_articulation(parts_at(&tracker, &node_part, &end_poses));
+            (tracker, check_views)
+        };
+        // Two plates pulled out 0.20 and 0.24: one joint within its tolerances
+        // (slides within 20 %), and two parts.
+        let (tracker, (frames, end_views)) = setup(0.6, [0.2, 0.24], [0.2, 0.24]);
+        let parts = tracker.articulation.clone().expect("parts");
+        assert_eq!(tracker.merge_same_joint_parts(parts.clone(), &[]).centres.len(), 1, "the joints agree");
+        let check = tracker.validation_views(&frames, &end_views);
+        assert_eq!(tracker.merge_same_joint_parts(parts, &check).centres.len(), 2, "the pixels keep two parts");
+        // One plate pulled out 0.20, tracked as two pieces, the smaller 1 cm short: one part.
+        let (tracker, (frames, end_views)) = setup(0.72, [0.2, 0.2], [0.2, 0.19]);
+        let check = tracker.validation_views(&frames, &end_views);
+        let parts = tracker.articulation.clone().expect("parts");
+        assert_eq!(tracker.merge_same_joint_parts(parts, &check).centres.len(), 1, "the pieces of one plate merge");
+    }
+
+    #[test]
     fn most_of_the_base_wrong_still_counts_as_wrong() {
         // A quarter of the base right (0.005), the rest a moving part left in it (0.2).
         let mut residuals = vec![0.005; 30];
