@@ -76,6 +76,14 @@ impl Camera {
         Some((k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy, c.z))
     }
 
+    /// The row-major index of the pixel world point `p` falls in and its depth,
+    /// when it lies in front of the camera and inside the image.
+    pub fn pixel_of(&self, p: Vec3) -> Option<(usize, f32)> {
+        let (x, y, z) = self.project(p)?;
+        let (w, h) = (self.width() as f32, self.height() as f32);
+        (x >= 0.0 && y >= 0.0 && x < w && y < h).then(|| (y as usize * self.width() as usize + x as usize, z))
+    }
+
     /// Load a camera file (see [`CameraFile`]), validating it.
     pub fn load_json(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
@@ -130,5 +138,25 @@ impl CameraFile {
         let k =
             Intrinsics { width: self.width, height: self.height, fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy };
         Ok(Camera::new(k, m))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3;
+
+    use super::{Camera, Intrinsics};
+
+    #[test]
+    fn a_point_has_a_pixel_only_in_front_of_the_camera_and_inside_the_image() {
+        let k = Intrinsics { width: 40, height: 30, fx: 50.0, fy: 50.0, cx: 20.0, cy: 15.0 };
+        let camera = Camera::look_at(k, Vec3::new(0.0, 0.0, 2.0), Vec3::ZERO, Vec3::Y);
+        let (pixel, depth) = camera.pixel_of(Vec3::ZERO).expect("the target is in view");
+        assert_eq!(pixel, 15 * 40 + 20, "the principal point's pixel");
+        assert!((depth - 2.0).abs() < 1e-5, "depth {depth}");
+        // 0.9 m to a side at 2 m is 22.5 px from the centre: past the 20 px half-width.
+        assert!(camera.pixel_of(Vec3::new(0.9, 0.0, 0.0)).is_none(), "outside the image");
+        assert!(camera.pixel_of(Vec3::new(0.7, 0.0, 0.0)).is_some(), "17.5 px from the centre: inside");
+        assert!(camera.pixel_of(Vec3::new(0.0, 0.0, 3.0)).is_none(), "behind the camera");
     }
 }

@@ -244,12 +244,7 @@ pub fn fuse_gaussians(gs: &GaussianSet, object_size: f32, cfg: &TsdfConfig) -> R
                 let p = origin + voxel * Vec3::new(x as f32, y as f32, z as f32);
                 let (mut sum, mut weight) = (0.0f32, 0.0f32);
                 for v in &views {
-                    let Some((u, w, depth_z)) = v.camera.project(p) else { continue };
-                    let (width, height) = (v.camera.width(), v.camera.height());
-                    if u < 0.0 || w < 0.0 || u >= width as f32 || w >= height as f32 {
-                        continue;
-                    }
-                    let pixel = w as usize * width as usize + u as usize;
+                    let Some((pixel, depth_z)) = v.camera.pixel_of(p) else { continue };
                     let (value, w) = match v.depth[pixel] {
                         None => (1.0, 1.0),
                         Some((d, w)) => {

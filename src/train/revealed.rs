@@ -57,13 +57,8 @@ impl RevealedContent {
             let mut seen = vec![false; candidates.len()];
             for camera in scan {
                 let r = render(start, camera, &RenderOptions::uniform(Vec3::ZERO));
-                let (w, h) = (r.width as usize, r.height as usize);
                 for (k, p) in candidates.iter().enumerate() {
-                    let Some((x, y, z)) = camera.project(*p) else { continue };
-                    if !(x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h) {
-                        continue;
-                    }
-                    let pixel = y as usize * w + x as usize;
+                    let Some((pixel, z)) = camera.pixel_of(*p) else { continue };
                     let alpha = r.image.alpha[pixel];
                     seen[k] = true;
                     if alpha < SURFACE_ALPHA || z < r.image.depth[pixel] / alpha + margin {

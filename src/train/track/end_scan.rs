@@ -65,10 +65,7 @@ impl EndScan {
 
     /// Whether at least `MIN_VIEWS` of the scan's views have `p` in frame.
     fn in_view(&self, p: Vec3) -> bool {
-        let in_frame = |c: &Camera| {
-            c.project(p).is_some_and(|(x, y, _)| x >= 0.0 && y >= 0.0 && x < c.width() as f32 && y < c.height() as f32)
-        };
-        self.cameras.iter().filter(|c| in_frame(c)).take(MIN_VIEWS).count() >= MIN_VIEWS
+        self.cameras.iter().filter(|c| c.pixel_of(p).is_some()).take(MIN_VIEWS).count() >= MIN_VIEWS
     }
 
     /// The share of those of `points` the views see that lie within reach of the

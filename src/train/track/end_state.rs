@@ -384,7 +384,6 @@ impl NodeTracker {
             let r = view.image();
             let target = v.target(bg);
             let depth = r.expected_depth();
-            let (w, h) = (view.width() as usize, view.height());
             // The pixel where each of the node's Gaussians is the visible surface.
             let visible: Vec<(usize, usize)> = self
                 .binding
@@ -392,11 +391,7 @@ impl NodeTracker {
                 .enumerate()
                 .filter(|(_, &k)| parts.node_part[k as usize] == label)
                 .filter_map(|(i, &k)| {
-                    let (x, y, z) = v.camera.project(g.mean(i))?;
-                    if x < 0.0 || y < 0.0 || x >= w as f32 || y >= h as f32 {
-                        return None;
-                    }
-                    let px = y as usize * w + x as usize;
+                    let (px, z) = v.camera.pixel_of(g.mean(i))?;
                     // The surface within 2 % of the object or two pixels' width at that depth.
                     let tolerance = tolerance.max(2.0 * z / v.camera.intrinsics.fx);
                     (r.alpha[px] >= 0.5 && (depth[px] - z).abs() <= tolerance).then_some((k as usize, px))
