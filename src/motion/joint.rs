@@ -63,7 +63,7 @@ pub fn extract_joint(m: &Rigid, centroid: DVec3) -> JointEstimate {
         // which a leftover rotation of a few degrees swings sideways by (R - I)
         // times the centroid's distance from it (a drawer 0.3 m from the origin
         // turned 1.4 deg: 7 mm, 2 deg on a 0.2 m slide).
-        let d = m.apply(centroid) - centroid;
+        let d = m.displacement(centroid);
         let len = d.length();
         let axis = if len > 1e-12 { d / len } else { DVec3::Z };
         JointEstimate { kind: JointKind::Prismatic, axis, origin: centroid, amount: len, translation_along_axis: len }

@@ -19,6 +19,12 @@ impl Rigid {
         self.r * p + self.t
     }
 
+    /// How far the motion carries point `p`: a part's displacement when `p` is its
+    /// centroid (unlike t, whatever the origin).
+    pub fn displacement(&self, p: DVec3) -> DVec3 {
+        self.apply(p) - p
+    }
+
     pub fn apply_f32(&self, p: Vec3) -> Vec3 {
         self.apply(p.as_dvec3()).as_vec3()
     }

@@ -106,6 +106,13 @@ pub struct DynamicConfig {
 }
 
 impl DynamicConfig {
+    /// Whether a part moving by `m` (t = 0 -> 1) with its centroid at `centroid`
+    /// stays within the static thresholds: its turn (`sdmd_max_rotation`) and its
+    /// centroid's displacement (`sdmd_max_translation`).
+    pub(crate) fn is_static_motion(&self, m: &Rigid, centroid: DVec3) -> bool {
+        m.angle() <= self.sdmd_max_rotation && m.displacement(centroid).length() <= self.sdmd_max_translation
+    }
+
     pub fn paper() -> Self {
         let s = crate::train::config::StaticConfig::paper();
         Self {
@@ -462,9 +469,7 @@ pub(crate) fn parts_from_trajectories(
             let members: Vec<usize> = g.members.iter().map(|&i| index[i]).collect();
             let joint = extract_joint(&m, centroid);
             // A group that does not move is static content, not a part.
-            let moved = (m.apply(centroid) - centroid).length();
-            let static_like = m.angle() <= config.sdmd_max_rotation && moved <= config.sdmd_max_translation;
-            (!static_like).then_some(PartEstimate { members, joint, motion: m })
+            (!config.is_static_motion(&m, centroid)).then_some(PartEstimate { members, joint, motion: m })
         })
         .collect();
     (parts, rest)

@@ -1053,11 +1053,9 @@ impl NodeTracker {
             let motion = self
                 .nodes_rigid_fit(&nodes, last)
                 .unwrap_or_else(|| last[nodes[0]].to_rigid(self.node_centres[nodes[0]]));
-            let c = &self.config;
             let centroid =
                 members.iter().map(|&i| self.gaussians.mean(i).as_dvec3()).sum::<DVec3>() / members.len() as f64;
-            let moved = (motion.apply(centroid) - centroid).length();
-            if motion.angle() <= c.sdmd_max_rotation && moved <= c.sdmd_max_translation {
+            if self.config.is_static_motion(&motion, centroid) {
                 members.iter().for_each(|&i| labels[i] = 0);
                 continue;
             }
