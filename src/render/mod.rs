@@ -20,10 +20,12 @@ pub mod gpu;
 pub mod lanes;
 pub mod project;
 pub mod raster;
+mod repaint;
 pub mod sh;
 
 pub use backend::{Backend, BackendChoice, View};
 use project::ProjectionCamera;
+pub use repaint::{Repaint, Repaintable};
 
 /// What to render.
 #[derive(Clone, Debug)]

@@ -81,31 +81,40 @@ impl TileBins {
 
 /// Sort visible Gaussians (`proj[i]` is Some) front to back and bin them into tiles.
 pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBins {
+    let by_depth = proj.iter().enumerate().filter_map(|(i, p)| p.as_ref().map(|p| (p.depth, i as u32))).collect();
+    let projected = |i: u32| proj[i as usize].as_ref().expect("sorted Gaussians are visible");
+    bin_sorted(by_depth, projected, proj.len(), width, height, |_| true)
+}
+
+/// Bin the Gaussians `by_depth` lists (depth, index; `projected(index)` each
+/// one's projection) of a set of `gaussian_count` into the tiles `keep` holds,
+/// the other tiles' lists left empty. Every kept tile's list is the one
+/// `bin_tiles` gives it when `by_depth` holds all the Gaussians that reach it:
+/// the same Gaussians in the same order, so compositing it gives the same pixels.
+pub(crate) fn bin_sorted<'a>(
+    mut by_depth: Vec<(f32, u32)>,
+    projected: impl Fn(u32) -> &'a Projected + Sync,
+    gaussian_count: usize,
+    width: u32,
+    height: u32,
+    keep: impl Fn(usize) -> bool,
+) -> TileBins {
     assert!(
         width <= MAX_IMAGE_SIDE && height <= MAX_IMAGE_SIDE,
         "{width}x{height} px: the rasterizer renders at most {MAX_IMAGE_SIDE} px on a side"
     );
     let tiles_x = width.div_ceil(TILE);
     let tiles_y = height.div_ceil(TILE);
-    let mut by_depth: Vec<(f32, u32)> =
-        proj.iter().enumerate().filter_map(|(i, p)| p.as_ref().map(|p| (p.depth, i as u32))).collect();
     // Unique keys (depth, index): the order is deterministic whatever the sort does.
     by_depth.par_sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     let order: Vec<u32> = by_depth.iter().map(|&(_, i)| i).collect();
-    let splats: Vec<Splat> = order
-        .par_iter()
-        .map(|&i| Splat::new(proj[i as usize].as_ref().expect("sorted Gaussians are visible")))
-        .collect();
+    let splats: Vec<Splat> = order.par_iter().map(|&i| Splat::new(projected(i))).collect();
 
     let ntiles = (tiles_x * tiles_y) as usize;
     let mut counts = vec![0u32; ntiles + 1];
-    let tile_span = |s: &Splat| s.bbox.map(|v| v as u32 / TILE);
     for s in &splats {
-        let [tx0, ty0, tx1, ty1] = tile_span(s);
-        for ty in ty0..=ty1 {
-            for tx in tx0..=tx1 {
-                counts[(ty * tiles_x + tx) as usize + 1] += 1;
-            }
+        for t in tiles_reached(&s.bbox.map(u32::from), tiles_x).filter(|&t| keep(t)) {
+            counts[t + 1] += 1;
         }
     }
     for t in 0..ntiles {
@@ -115,16 +124,18 @@ pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBin
     let mut fill = offsets.clone();
     let mut entries = vec![0u32; offsets[ntiles] as usize];
     for (rank, s) in splats.iter().enumerate() {
-        let [tx0, ty0, tx1, ty1] = tile_span(s);
-        for ty in ty0..=ty1 {
-            for tx in tx0..=tx1 {
-                let t = (ty * tiles_x + tx) as usize;
-                entries[fill[t] as usize] = rank as u32;
-                fill[t] += 1;
-            }
+        for t in tiles_reached(&s.bbox.map(u32::from), tiles_x).filter(|&t| keep(t)) {
+            entries[fill[t] as usize] = rank as u32;
+            fill[t] += 1;
         }
     }
-    TileBins { tiles_x, tiles_y, gaussian_count: proj.len(), order, splats, offsets, entries }
+    TileBins { tiles_x, tiles_y, gaussian_count, order, splats, offsets, entries }
+}
+
+/// The tiles (row-major in a grid `tiles_x` wide) a Gaussian's inclusive pixel box `bbox` reaches.
+pub(crate) fn tiles_reached(bbox: &[u32; 4], tiles_x: u32) -> impl Iterator<Item = usize> {
+    let [tx0, ty0, tx1, ty1] = bbox.map(|v| v / TILE);
+    (ty0..=ty1).flat_map(move |ty| (tx0..=tx1).map(move |tx| (ty * tiles_x + tx) as usize))
 }
 
 /// Composited images plus what the backward pass needs.
@@ -377,14 +388,8 @@ pub fn rasterize_with(
     if let Background::Image(img) = background {
         assert_eq!(img.len(), (3 * width * height) as usize, "background image must match the render");
     }
-    let results: Vec<TileResult> = (0..bins.tile_count())
-        .into_par_iter()
-        .map(|t| {
-            dispatch!(kernels, |L; bins: &TileBins, t: usize, width: u32, height: u32| -> TileResult {
-                forward_tile::<L>(bins, t, width, height)
-            })
-        })
-        .collect();
+    let tiles: Vec<usize> = (0..bins.tile_count()).collect();
+    let results = composite_tiles(kernels, bins, &tiles, width, height);
 
     let n = (width * height) as usize;
     let mut out = RasterOutput {
@@ -395,24 +400,61 @@ pub fn rasterize_with(
         last: vec![0; n],
     };
     for res in &results {
-        let r = res.rect;
+        res.for_each_pixel(width, &background, |o, l, color| {
+            let tl = res.t[l].abs();
+            out.color[3 * o..3 * o + 3].copy_from_slice(&color);
+            out.alpha[o] = 1.0 - tl;
+            out.depth[o] = res.depth[l];
+            out.final_t[o] = tl;
+            out.last[o] = res.last[l] as u32;
+        });
+    }
+    out
+}
+
+/// Forward compositing of the tiles `tiles` only, with the fastest kernel set
+/// this CPU runs: calls `f(pixel, rgb)` for each of their pixels (row-major
+/// index in the image, colour with the background), the value `rasterize` gives it.
+pub fn rasterize_tiles(
+    bins: &TileBins,
+    tiles: &[usize],
+    width: u32,
+    height: u32,
+    background: Background,
+    mut f: impl FnMut(usize, [f32; 3]),
+) {
+    for res in &composite_tiles(Kernels::active(), bins, tiles, width, height) {
+        res.for_each_pixel(width, &background, |o, _, rgb| f(o, rgb));
+    }
+}
+
+fn composite_tiles(kernels: Kernels, bins: &TileBins, tiles: &[usize], width: u32, height: u32) -> Vec<TileResult> {
+    tiles
+        .par_iter()
+        .map(|&t| {
+            dispatch!(kernels, |L; bins: &TileBins, t: usize, width: u32, height: u32| -> TileResult {
+                forward_tile::<L>(bins, t, width, height)
+            })
+        })
+        .collect()
+}
+
+impl TileResult {
+    /// Calls `f(pixel, l, rgb)` for each pixel of the tile: its row-major index
+    /// in an image `width` wide, its index in the tile's planes, and its colour
+    /// with `background` showing through the final transmittance.
+    fn for_each_pixel(&self, width: u32, background: &Background, mut f: impl FnMut(usize, usize, [f32; 3])) {
+        let r = self.rect;
         for py in r[1]..r[3] {
             for px in r[0]..r[2] {
                 let l = ((py - r[1]) * TILE + (px - r[0])) as usize;
                 let o = (py * width + px) as usize;
-                let tl = res.t[l].abs();
+                let tl = self.t[l].abs();
                 let bg = background.at(o);
-                for c in 0..3 {
-                    out.color[3 * o + c] = res.color[c][l] + bg[c] * tl;
-                }
-                out.alpha[o] = 1.0 - tl;
-                out.depth[o] = res.depth[l];
-                out.final_t[o] = tl;
-                out.last[o] = res.last[l] as u32;
+                f(o, l, [0, 1, 2].map(|c| self.color[c][l] + bg[c] * tl));
             }
         }
     }
-    out
 }
 
 /// Forward compositing of tile t.

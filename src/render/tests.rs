@@ -495,6 +495,52 @@ fn sets_rendered_together_equal_their_union_and_each_gets_its_rows_gradients() {
 }
 
 #[test]
+fn a_repaint_gives_the_whole_render_of_the_changed_set_to_the_bit() {
+    let (gs, _, bg) = dense_scene();
+    // A larger image than the scene's, so most tiles are far from what changes.
+    let cam = camera(170, 121);
+    for opts in [RenderOptions::uniform(bg), ramp_background(&cam)] {
+        let mut painted = Repaintable::new(&gs, &cam, &opts);
+        assert_eq!(painted.color(), render(&gs, &cam, &opts).image.color);
+        let mut now = gs.clone();
+        // Two rounds, the second on the first's result: small Gaussians moved
+        // (one behind the camera) and made more opaque.
+        for (round, rows) in [vec![3usize, 17, 40, 41, 250], vec![17, 99, 410, 650]].into_iter().enumerate() {
+            let keep: Vec<bool> = (0..gs.len()).map(|i| rows.contains(&i)).collect();
+            let mut changed = now.subset(&keep);
+            for (j, m) in changed.means.chunks_mut(3).enumerate() {
+                m[0] += 0.15 * (j as f32 + 1.0) * if round == 0 { 1.0 } else { -1.0 };
+                m[1] -= 0.1;
+                if round == 1 && j == 0 {
+                    m[2] -= 10.0;
+                }
+            }
+            changed.opacity_logits.iter_mut().for_each(|o| *o += 1.0);
+            let repaint = painted.repaint(&rows, &changed);
+            for (j, &i) in rows.iter().enumerate() {
+                for g in ParamGroup::ALL {
+                    let w = now.width(g);
+                    now.group_mut(g)[w * i..w * i + w].copy_from_slice(&changed.group(g)[w * j..w * j + w]);
+                }
+            }
+            let whole = render(&now, &cam, &opts).image.color;
+            let pixels = (cam.width() * cam.height()) as usize;
+            assert!(
+                !repaint.pixels.is_empty() && repaint.pixels.len() < pixels / 2,
+                "{} of {pixels}",
+                repaint.pixels.len()
+            );
+            for (&o, rgb) in repaint.pixels.iter().zip(&repaint.colors) {
+                assert_eq!(rgb[..], whole[3 * o..3 * o + 3], "pixel {o}");
+            }
+            painted.apply(&repaint);
+            assert_eq!(painted.color(), whole, "round {round}");
+            assert_ne!(whole, render(&gs, &cam, &opts).image.color);
+        }
+    }
+}
+
+#[test]
 fn fast_exp_matches_f64_exp_on_nonpositive_arguments_with_every_kernel_set() {
     for k in Kernels::available() {
         let exp = |x: f32| dispatch!(k, |L; x: f32| -> f32 { raster::exp_nonpositive(L::splat(x)).to_array()[0] });

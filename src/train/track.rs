@@ -29,7 +29,7 @@ use super::views::TrainView;
 use crate::error::{Error, Result};
 use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::project::{project_one, ProjectionCamera};
-use crate::render::{crop, region_rows};
+use crate::render::{crop, region_rows, Repaint, Repaintable};
 use crate::splat::GaussianSet;
 
 mod contact;
@@ -702,7 +702,24 @@ impl NodeTracker {
     /// The Gaussians moved by `poses`, their colours scaled by `exp(gains)` (per node).
     pub fn deformed(&self, poses: &[NodePose], gains: &[f32]) -> GaussianSet {
         let mut g = self.gaussians.clone();
-        let (centres, binding) = (&self.node_centres, &self.binding);
+        self.deform(&mut g, &self.binding, poses, gains);
+        g
+    }
+
+    /// Rows `rows` of `deformed(poses, gains)`, in order, computed for those rows only.
+    fn deformed_rows(&self, rows: &[usize], poses: &[NodePose], gains: &[f32]) -> GaussianSet {
+        let mut keep = vec![false; self.gaussians.len()];
+        rows.iter().for_each(|&i| keep[i] = true);
+        let mut g = self.gaussians.subset(&keep);
+        let binding: Vec<u32> = rows.iter().map(|&i| self.binding[i]).collect();
+        self.deform(&mut g, &binding, poses, gains);
+        g
+    }
+
+    /// Move start-state Gaussians `g` (row i bound to node `binding[i]`) by the
+    /// node poses `poses` and scale their colours by `exp(gains)`.
+    fn deform(&self, g: &mut GaussianSet, binding: &[u32], poses: &[NodePose], gains: &[f32]) {
+        let centres = &self.node_centres;
         // colour = C0 dc + 1/2, so gain x colour is dc' = gain dc + (gain - 1) / (2 C0).
         let c0 = crate::render::sh::SH_C0;
         g.sh_dc.par_chunks_mut(3).zip(binding.par_iter()).for_each(|(dc, &k)| {
@@ -717,7 +734,6 @@ impl NodeTracker {
                 r.copy_from_slice(&[q.w, q.x, q.y, q.z]);
             },
         );
-        g
     }
 
     /// The knot below time `t` among the fitted ones and the fraction of the way
@@ -1769,7 +1785,8 @@ impl NodeTracker {
             return 0;
         }
         let mut node_part = parts.node_part.clone();
-        let mut current = self.articulated_loss(&parts, &node_part, &check);
+        let mut renders = self.check_renders(&parts, &node_part, &check);
+        let mut current = renders.loss();
         let mut moved = 0;
         // The held part's pieces were judged when the hand took hold (`take_hold`).
         let held = if self.segments_done > 0 { self.held_part().map(|p| p + 1) } else { None };
@@ -1788,29 +1805,26 @@ impl NodeTracker {
                     (1..=parts.centres.len()).filter(|&q| q != p).map(|q| (q, gap(q))).collect();
                 others.sort_by(|a, b| a.1.total_cmp(&b.1));
                 let targets = std::iter::once(0).chain(others.iter().take(2).filter(|o| o.1.is_finite()).map(|o| o.0));
+                let now = TrackedParts { node_part: node_part.clone(), ..parts.clone() };
                 let best = targets
-                    .map(|q| {
-                        let mut trial = node_part.clone();
-                        chunk.iter().for_each(|&k| trial[k] = q);
-                        let loss = self.articulated_loss(&parts, &trial, &check);
-                        (q, trial, loss)
-                    })
-                    .min_by(|a, b| a.2.total_cmp(&b.2));
+                    .map(|q| (q, self.trial_on(&now, &renders, &chunk, q)))
+                    .min_by(|a, b| a.1.loss.total_cmp(&b.1.loss));
                 // Strictly better only: a piece is too small for a tolerance on the
                 // whole frames' loss (1 % accepted nearly every piece, one after another).
-                if let Some((q, trial, loss)) = best {
+                if let Some((q, trial)) = best {
                     let margin = if q == 0 { base_margin } else { 0.0 };
-                    if loss < current * (1.0 + margin) {
+                    if trial.loss < current * (1.0 + margin) {
                         tracing::debug!(
                             part = p,
                             into = q,
                             nodes = chunk.len(),
-                            loss,
+                            loss = trial.loss,
                             before = current,
                             "stage II: a piece of a part moved"
                         );
-                        node_part = trial;
-                        current = loss;
+                        chunk.iter().for_each(|&k| node_part[k] = q);
+                        current = trial.loss;
+                        renders.accept(trial);
                         moved += 1;
                     }
                 }
@@ -1894,6 +1908,62 @@ impl NodeTracker {
                 self.backend.render(&g, &v.camera, &v.render_options(bg)).into_image().color
             })
             .collect()
+    }
+
+    /// `views` rendered with the nodes assigned to parts by `node_part`, as
+    /// `articulated_renders` renders them, kept for trials that give a few
+    /// nodes to another part (`CheckRenders`). Always the CPU rasterizer: a trial
+    /// composites only the pixels it can change, which must match the rest of
+    /// the kept image to the bit.
+    fn check_renders<'v>(
+        &self,
+        parts: &TrackedParts,
+        node_part: &[usize],
+        views: &[&'v TrainView],
+    ) -> CheckRenders<'v> {
+        let assigned = TrackedParts { node_part: node_part.to_vec(), ..parts.clone() };
+        let bg = Vec3::from(self.config.eval_background);
+        let cap = self.config.track.validation_residual_cap;
+        let targets = self.targets(views);
+        let (renders, residuals): (Vec<Repaintable>, Vec<Vec<f32>>) = views
+            .iter()
+            .zip(&targets)
+            .map(|(v, target)| {
+                let t = v.time.unwrap_or(0.0);
+                let at = self.interpolated(&parts.poses, t, NodePose::lerp);
+                let poses = assigned.node_poses(&self.node_centres, &at);
+                let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
+                let render = Repaintable::new(&g, &v.camera, &v.render_options(bg));
+                let residual = pixel_residuals(render.color(), target, cap);
+                (render, residual)
+            })
+            .unzip();
+        let means = residuals.iter().map(|r| mean_of(r.iter().copied())).collect();
+        CheckRenders { views: views.to_vec(), targets, renders, residuals, means, cap }
+    }
+
+    /// The check renders with the nodes `nodes` given to part label `label`
+    /// (0 = base) and the loss they give (`articulated_loss` of that labelling,
+    /// to the bit).
+    fn trial_on(&self, parts: &TrackedParts, check: &CheckRenders, nodes: &[usize], label: usize) -> Trial {
+        let mut node_part = parts.node_part.clone();
+        nodes.iter().for_each(|&k| node_part[k] = label);
+        let assigned = TrackedParts { node_part, ..parts.clone() };
+        let moved: std::collections::HashSet<usize> = nodes.iter().copied().collect();
+        let rows: Vec<usize> =
+            (0..self.binding.len()).filter(|&i| moved.contains(&(self.binding[i] as usize))).collect();
+        let repaints: Vec<Repaint> = check
+            .views
+            .par_iter()
+            .zip(&check.renders)
+            .map(|(v, render)| {
+                let t = v.time.unwrap_or(0.0);
+                let at = self.interpolated(&parts.poses, t, NodePose::lerp);
+                let poses = assigned.node_poses(&self.node_centres, &at);
+                render.repaint(&rows, &self.deformed_rows(&rows, &poses, &self.gains_at(t)))
+            })
+            .collect();
+        check.trial(repaints)
     }
 
     /// Mean PSNR of `views` rendered at the tracked state nearest their times, over
@@ -2085,6 +2155,68 @@ fn region_step(
     RegionStep { render, target, loss: l.loss * share, grads }
 }
 
+/// Check views rendered with one labelling of the nodes, their per-pixel
+/// residuals (`pixel_residuals`) and each view's mean, for trials of another
+/// labelling that differs in a few nodes (`NodeTracker::trial_on`).
+struct CheckRenders<'v> {
+    views: Vec<&'v TrainView>,
+    targets: Vec<Vec<f32>>,
+    renders: Vec<Repaintable>,
+    residuals: Vec<Vec<f32>>,
+    means: Vec<f32>,
+    cap: f32,
+}
+
+/// A labelling tried on [`CheckRenders`]: each view's repaint and mean residual, and the loss.
+struct Trial {
+    repaints: Vec<Repaint>,
+    means: Vec<f32>,
+    loss: f32,
+}
+
+impl CheckRenders<'_> {
+    /// `mean_residual` of the renders.
+    fn loss(&self) -> f32 {
+        mean_of(self.means.iter().copied())
+    }
+
+    /// The trial whose renders are these with `repaints` (one per view) taken.
+    fn trial(&self, repaints: Vec<Repaint>) -> Trial {
+        let means: Vec<f32> = repaints
+            .par_iter()
+            .enumerate()
+            .map(|(v, repaint)| {
+                if repaint.pixels.is_empty() {
+                    return self.means[v];
+                }
+                let mut residual = self.residuals[v].clone();
+                self.patch(v, repaint, &mut residual);
+                mean_of(residual.into_iter())
+            })
+            .collect();
+        Trial { loss: mean_of(means.iter().copied()), repaints, means }
+    }
+
+    /// Set the residuals of the pixels `repaint` composited (of view `v`) in `residual`.
+    fn patch(&self, v: usize, repaint: &Repaint, residual: &mut [f32]) {
+        let target = &self.targets[v];
+        for (&o, rgb) in repaint.pixels.iter().zip(&repaint.colors) {
+            residual[o] = pixel_residual(rgb, &target[3 * o..3 * o + 3], self.cap);
+        }
+    }
+
+    /// Take `trial`'s renders as these.
+    fn accept(&mut self, trial: Trial) {
+        for (v, repaint) in trial.repaints.iter().enumerate() {
+            self.renders[v].apply(repaint);
+            let mut residual = std::mem::take(&mut self.residuals[v]);
+            self.patch(v, repaint, &mut residual);
+            self.residuals[v] = residual;
+        }
+        self.means = trial.means;
+    }
+}
+
 /// One view's per-pixel residual and its sum.
 struct ViewResiduals {
     residual: Vec<f32>,
@@ -2106,12 +2238,13 @@ impl ViewResiduals {
 
 /// Mean over the images of their mean per-pixel residual (`pixel_residuals`) against `targets`.
 fn mean_residual(renders: &[Vec<f32>], targets: &[Vec<f32>], cap: f32) -> f32 {
-    let total: f32 = renders
-        .iter()
-        .zip(targets)
-        .map(|(r, t)| pixel_residuals(r, t, cap).into_iter().sum::<f32>() / (r.len() / 3).max(1) as f32)
-        .sum();
-    total / renders.len().max(1) as f32
+    mean_of(renders.iter().zip(targets).map(|(r, t)| mean_of(pixel_residuals(r, t, cap).into_iter())))
+}
+
+/// The mean of `values`, summed in order in f32 (0 when there are none).
+fn mean_of(values: impl ExactSizeIterator<Item = f32>) -> f32 {
+    let n = values.len().max(1);
+    values.sum::<f32>() / n as f32
 }
 
 /// A colour change smaller than this (any channel) is no change: a display's
@@ -2136,11 +2269,12 @@ fn residuals_where_changed(a: &[Vec<f32>], b: &[Vec<f32>], targets: &[Vec<f32>],
 
 /// The robust per-pixel residual: mean absolute error over the channels, capped at `cap`.
 fn pixel_residuals(rendered: &[f32], target: &[f32], cap: f32) -> Vec<f32> {
-    rendered
-        .chunks_exact(3)
-        .zip(target.chunks_exact(3))
-        .map(|(x, y)| ((0..3).map(|c| (x[c] - y[c]).abs()).sum::<f32>() / 3.0).min(cap))
-        .collect()
+    rendered.chunks_exact(3).zip(target.chunks_exact(3)).map(|(x, y)| pixel_residual(x, y, cap)).collect()
+}
+
+/// One pixel's term of `pixel_residuals`: its colours `x` and `y`.
+fn pixel_residual(x: &[f32], y: &[f32], cap: f32) -> f32 {
+    ((0..3).map(|c| (x[c] - y[c]).abs()).sum::<f32>() / 3.0).min(cap)
 }
 
 /// The pixels [x0, y0, x1, y1) of `camera`'s image that the Gaussians of `g`
@@ -2679,6 +2813,37 @@ mod tests {
             let whole = tracker.articulated_loss(&trial, &trial.node_part, &[&view]);
             assert!(whole > 0.0 || *pose == NodePose::IDENTITY);
             assert!((fast - whole).abs() <= 1e-5 * whole.max(1e-3), "{pose:?}: {fast} against {whole}");
+        }
+    }
+
+    #[test]
+    fn a_cleaning_trial_gives_the_loss_of_rendering_the_labelling_whole_to_the_bit() {
+        let (tracker, view) = corner_part_scene();
+        let parts = tracker.articulation.clone().expect("a part");
+        let views = four_views_of(&tracker.gaussians, &view.camera);
+        let check: Vec<&TrainView> = views.iter().collect();
+        let mut renders = tracker.check_renders(&parts, &parts.node_part, &check);
+        assert_eq!(renders.loss(), tracker.articulated_loss(&parts, &parts.node_part, &check));
+        // Half the part's nodes to the base, then base nodes near the part into it.
+        let on_part: Vec<usize> = (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == 1).collect();
+        let centre = parts.centres[0];
+        let mut near: Vec<usize> = (0..parts.node_part.len()).filter(|&k| parts.node_part[k] == 0).collect();
+        near.sort_by(|&a, &b| {
+            tracker.node_centres[a].distance(centre).total_cmp(&tracker.node_centres[b].distance(centre))
+        });
+        let mut now = parts.clone();
+        for (nodes, label) in [(&on_part[..on_part.len() / 2], 0), (&near[..4], 1)] {
+            let trial = tracker.trial_on(&now, &renders, nodes, label);
+            nodes.iter().for_each(|&k| now.node_part[k] = label);
+            let whole = tracker.articulated_loss(&now, &now.node_part, &check);
+            assert_eq!(trial.loss, whole, "{} nodes to {label}", nodes.len());
+            assert_ne!(trial.loss, renders.loss(), "the trial changes the views");
+            assert!(trial
+                .repaints
+                .iter()
+                .any(|r| r.pixels.len() < (view.camera.width() * view.camera.height()) as usize));
+            renders.accept(trial);
+            assert_eq!(renders.loss(), whole);
         }
     }
 
