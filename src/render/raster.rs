@@ -388,8 +388,7 @@ pub fn rasterize_with(
     if let Background::Image(img) = background {
         assert_eq!(img.len(), (3 * width * height) as usize, "background image must match the render");
     }
-    let tiles: Vec<usize> = (0..bins.tile_count()).collect();
-    let results = composite_tiles(kernels, bins, &tiles, width, height);
+    let results = composite_tiles(kernels, bins, (0..bins.tile_count()).into_par_iter(), width, height);
 
     let n = (width * height) as usize;
     let mut out = RasterOutput {
@@ -423,15 +422,21 @@ pub fn rasterize_tiles(
     background: Background,
     mut f: impl FnMut(usize, [f32; 3]),
 ) {
-    for res in &composite_tiles(Kernels::active(), bins, tiles, width, height) {
+    for res in &composite_tiles(Kernels::active(), bins, tiles.par_iter().copied(), width, height) {
         res.for_each_pixel(width, &background, |o, _, rgb| f(o, rgb));
     }
 }
 
-fn composite_tiles(kernels: Kernels, bins: &TileBins, tiles: &[usize], width: u32, height: u32) -> Vec<TileResult> {
+/// Forward compositing of the tiles `tiles`, in their order.
+fn composite_tiles(
+    kernels: Kernels,
+    bins: &TileBins,
+    tiles: impl IndexedParallelIterator<Item = usize>,
+    width: u32,
+    height: u32,
+) -> Vec<TileResult> {
     tiles
-        .par_iter()
-        .map(|&t| {
+        .map(|t| {
             dispatch!(kernels, |L; bins: &TileBins, t: usize, width: u32, height: u32| -> TileResult {
                 forward_tile::<L>(bins, t, width, height)
             })

@@ -1901,13 +1901,22 @@ impl NodeTracker {
         views
             .iter()
             .map(|v| {
-                let t = v.time.unwrap_or(0.0);
-                let at = self.interpolated(&parts.poses, t, NodePose::lerp);
-                let poses = assigned.node_poses(&self.node_centres, &at);
-                let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
+                let g = self.articulated_set(&assigned, v.time.unwrap_or(0.0));
                 self.backend.render(&g, &v.camera, &v.render_options(bg)).into_image().color
             })
             .collect()
+    }
+
+    /// The node poses at time `t` with each node carried by the part `assigned` labels it with.
+    fn labelled_poses_at(&self, assigned: &TrackedParts, t: f32) -> Vec<NodePose> {
+        let at = self.interpolated(&assigned.poses, t, NodePose::lerp);
+        assigned.node_poses(&self.node_centres, &at)
+    }
+
+    /// Every Gaussian (the revealed content included) at time `t` with the nodes
+    /// labelled as `assigned` labels them.
+    fn articulated_set(&self, assigned: &TrackedParts, t: f32) -> GaussianSet {
+        self.revealed.with(self.deformed(&self.labelled_poses_at(assigned, t), &self.gains_at(t)))
     }
 
     /// `views` rendered with the nodes assigned to parts by `node_part`, as
@@ -1929,10 +1938,7 @@ impl NodeTracker {
             .iter()
             .zip(&targets)
             .map(|(v, target)| {
-                let t = v.time.unwrap_or(0.0);
-                let at = self.interpolated(&parts.poses, t, NodePose::lerp);
-                let poses = assigned.node_poses(&self.node_centres, &at);
-                let g = self.revealed.with(self.deformed(&poses, &self.gains_at(t)));
+                let g = self.articulated_set(&assigned, v.time.unwrap_or(0.0));
                 let render = Repaintable::new(&g, &v.camera, &v.render_options(bg));
                 let residual = pixel_residuals(render.color(), target, cap);
                 (render, residual)
@@ -1958,8 +1964,7 @@ impl NodeTracker {
             .zip(&check.renders)
             .map(|(v, render)| {
                 let t = v.time.unwrap_or(0.0);
-                let at = self.interpolated(&parts.poses, t, NodePose::lerp);
-                let poses = assigned.node_poses(&self.node_centres, &at);
+                let poses = self.labelled_poses_at(&assigned, t);
                 render.repaint(&rows, &self.deformed_rows(&rows, &poses, &self.gains_at(t)))
             })
             .collect();
