@@ -79,9 +79,21 @@ impl Camera {
     /// The row-major index of the pixel world point `p` falls in and its depth,
     /// when it lies in front of the camera and inside the image.
     pub fn pixel_of(&self, p: Vec3) -> Option<(usize, f32)> {
-        let (x, y, z) = self.project(p)?;
-        let (w, h) = (self.width() as f32, self.height() as f32);
-        (x >= 0.0 && y >= 0.0 && x < w && y < h).then(|| (y as usize * self.width() as usize + x as usize, z))
+        let (inside, pixel, z) = self.landing(p);
+        inside.then_some((pixel, z))
+    }
+
+    /// `pixel_of` without branches, for loops over many points: whether `p`
+    /// lands in the image in front of the camera, the row-major pixel index
+    /// (meaningful only then) and the depth.
+    #[inline]
+    pub fn landing(&self, p: Vec3) -> (bool, usize, f32) {
+        let c = self.to_camera(p);
+        let k = &self.intrinsics;
+        let (x, y) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
+        // `&`, not `&&`: every test is evaluated, none is a branch.
+        let inside = (c.z > 0.0) & (x >= 0.0) & (y >= 0.0) & (x < k.width as f32) & (y < k.height as f32);
+        (inside, (y as u32).wrapping_mul(k.width).wrapping_add(x as u32) as usize, c.z)
     }
 
     /// Load a camera file (see [`CameraFile`]), validating it.

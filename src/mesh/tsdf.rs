@@ -130,11 +130,14 @@ fn cameras_around(lo: Vec3, hi: Vec3, voxel: f32, cfg: &TsdfConfig) -> Vec<Camer
 }
 
 /// One view's depth (camera z of the surface) and the weight of its
-/// observations: None where alpha is too low (free space), else the depth and
-/// |cos| of the angle between the pixel's ray and the surface normal.
+/// observations per pixel: where alpha is high enough, the depth and |cos| of
+/// the angle between the pixel's ray and the surface normal; where it is not
+/// (free space), depth +inf and weight 1, whose observation min(inf /
+/// truncation, 1) = 1 is free space's value, so the fusion needs no case for it.
 struct DepthView {
     camera: Camera,
-    depth: Vec<Option<(f32, f32)>>,
+    depth: Vec<f32>,
+    weight: Vec<f32>,
 }
 
 impl DepthView {
@@ -150,7 +153,7 @@ impl DepthView {
         let point = |x: usize, y: usize, d: f32| {
             Vec3::new((x as f32 + 0.5 - k.cx) / k.fx * d, (y as f32 + 0.5 - k.cy) / k.fy * d, d)
         };
-        let mut out = vec![None; w * h];
+        let (mut out_depth, mut out_weight) = (vec![f32::INFINITY; w * h], vec![1.0f32; w * h]);
         for y in 0..h {
             for x in 0..w {
                 let Some(d) = z(x, y) else { continue };
@@ -163,10 +166,44 @@ impl DepthView {
                 let at = |dx, dy| neighbour(dx, dy).unwrap_or(c);
                 let n = (at(1, 0) - at(-1, 0)).cross(at(0, 1) - at(0, -1));
                 let weight = if n.length_squared() > 0.0 { n.normalize().dot(c.normalize()).abs() } else { 0.0 };
-                out[y * w + x] = Some((d, weight.max(0.05)));
+                out_depth[y * w + x] = d;
+                out_weight[y * w + x] = weight.max(0.05);
             }
         }
-        Self { camera, depth: out }
+        Self { camera, depth: out_depth, weight: out_weight }
+    }
+
+    /// Add this view's observations of the voxels (x, `py`, `pz`), x =
+    /// `origin_x` + `voxel` * i for each i, to `sum` and `weight`: a voxel in
+    /// front of the image's surface or in free space adds its truncated signed
+    /// distance (at most 1) times the pixel's weight; one farther than `behind`
+    /// behind the surface, or out of the image, adds nothing (a sum of +0.0,
+    /// which leaves it as it was). Without branches: which case a voxel is in
+    /// changes from one to the next, and mispredicted branches cost more than
+    /// the arithmetic.
+    #[allow(clippy::too_many_arguments)]
+    fn observe_row(
+        &self,
+        origin_x: f32,
+        voxel: f32,
+        py: f32,
+        pz: f32,
+        truncation: f32,
+        behind: f32,
+        sum: &mut [f32],
+        weight: &mut [f32],
+    ) {
+        // Within the maps by construction; the clamp lets the compiler drop the bounds checks.
+        let last = self.depth.len().min(self.weight.len()) - 1;
+        for (i, (sum, weight)) in sum.iter_mut().zip(weight.iter_mut()).enumerate() {
+            let (inside, pixel, z) = self.camera.landing(Vec3::new(origin_x + voxel * i as f32, py, pz));
+            let pixel = if inside { pixel } else { 0 }.min(last);
+            let sdf = self.depth[pixel] - z;
+            let counts = inside & (sdf >= -behind);
+            let w = if counts { self.weight[pixel] } else { 0.0 };
+            *sum += if counts { w * (sdf / truncation).min(1.0) } else { 0.0 };
+            *weight += w;
+        }
     }
 }
 
@@ -239,28 +276,20 @@ pub fn fuse_gaussians(gs: &GaussianSet, object_size: f32, cfg: &TsdfConfig) -> R
     let slice = dims[0] * dims[1];
     let mut values = vec![-1.0f32; slice * dims[2]];
     values.par_chunks_mut(slice).enumerate().for_each(|(z, plane)| {
-        for y in 0..dims[1] {
-            for x in 0..dims[0] {
-                let p = origin + voxel * Vec3::new(x as f32, y as f32, z as f32);
-                let (mut sum, mut weight) = (0.0f32, 0.0f32);
-                for v in &views {
-                    let Some((pixel, depth_z)) = v.camera.pixel_of(p) else { continue };
-                    let (value, w) = match v.depth[pixel] {
-                        None => (1.0, 1.0),
-                        Some((d, w)) => {
-                            let sdf = d - depth_z;
-                            if sdf < -behind {
-                                continue;
-                            }
-                            ((sdf / truncation).min(1.0), w)
-                        }
-                    };
-                    sum += w * value;
-                    weight += w;
-                }
-                if weight > 0.0 {
-                    plane[x + dims[0] * y] = sum / weight;
-                }
+        // View by view over the whole plane: each view's depth map is then read
+        // in order (one voxel after another lands on neighbouring pixels), not
+        // all 64 maps in turn for every voxel. Each voxel still sums its views
+        // in the same order.
+        let (mut sum, mut weight) = (vec![0.0f32; slice], vec![0.0f32; slice]);
+        let pz = origin.z + voxel * z as f32;
+        for v in &views {
+            for (y, (sum, weight)) in sum.chunks_exact_mut(dims[0]).zip(weight.chunks_exact_mut(dims[0])).enumerate() {
+                v.observe_row(origin.x, voxel, origin.y + voxel * y as f32, pz, truncation, behind, sum, weight);
+            }
+        }
+        for ((value, &sum), &weight) in plane.iter_mut().zip(&sum).zip(&weight) {
+            if weight > 0.0 {
+                *value = sum / weight;
             }
         }
     });
