@@ -199,7 +199,7 @@ impl DepthView {
             let (inside, pixel, z) = self.camera.landing(Vec3::new(origin_x + voxel * i as f32, py, pz));
             let pixel = if inside { pixel } else { 0 }.min(last);
             let sdf = self.depth[pixel] - z;
-            // Not `sdf >= -behind`: a NaN depth counts, as free space's value, in both.
+            // Not `sdf >= -behind`: a NaN depth counts (as +1, `min` passing over the NaN).
             let counts = inside & !(sdf < -behind);
             let w = if counts { self.weight[pixel] } else { 0.0 };
             *sum += if counts { w * (sdf / truncation).min(1.0) } else { 0.0 };
