@@ -194,6 +194,14 @@ fn interrupted_tracking_resumes_to_the_uninterrupted_result() {
     assert!(matches!(resumed, DynamicOutcome::Finished { .. }));
     let c = std::fs::read(root.join("late").join("track.bin")).expect("track");
     assert_eq!(a, c, "a run resumed in its end phase must repeat the uninterrupted one exactly");
+    // A new run in a used folder trains its own end scan: the one there may be
+    // of another dataset (here: the start state's scan planted in its place).
+    let scan_path = root.join("full").join("end_scan.ply");
+    let scan = std::fs::read(&scan_path).expect("the end scan");
+    std::fs::copy(&static_ply, &scan_path).expect("planted");
+    let again = run("full", &RunControl { resume: false, interrupt: &never, viz: &viz, backend: Backend::Cpu }, None);
+    assert!(matches!(again, DynamicOutcome::Finished { .. }));
+    assert_eq!(std::fs::read(&scan_path).expect("the end scan"), scan, "a new run must scan the end state again");
     // Resuming with another configuration is refused, naming the checkpoint.
     let mut other = dyn_cfg.clone();
     other.track.nodes += 1;

@@ -340,7 +340,8 @@ fn run_node_track(
     let (tracked, scan) = std::thread::scope(|s| {
         let stop = || control.interrupt.load(Ordering::SeqCst) || tracking_stopped.load(Ordering::SeqCst);
         let views = &end_views;
-        let scan = scan_settings.map(|settings| s.spawn(move || end_state_scan(out, views, settings, stop)));
+        let resume = control.resume;
+        let scan = scan_settings.map(|settings| s.spawn(move || end_state_scan(out, views, settings, resume, stop)));
         let tracked = track_frames(&mut tracker, &frames, &checkpoint, control, &mut progress, &|| elapsed(&started));
         if !matches!(tracked, Ok(true)) {
             tracking_stopped.store(true, Ordering::SeqCst);
@@ -481,16 +482,18 @@ struct EndScanSettings {
 }
 
 /// The end state scanned as the start state was (`settings`, on `end_views`):
-/// out/end_scan.ply when a run of this folder wrote it before (a resumed run),
-/// else trained and written there; None when `stop` said so first.
+/// when `resume`, out/end_scan.ply if the run being resumed wrote it, else
+/// trained and written there; None when `stop` said so first. A new run trains
+/// its own: the folder's scan may be of another dataset.
 fn end_state_scan(
     out: &Path,
     end_views: &[TrainView],
     settings: EndScanSettings,
+    resume: bool,
     stop: impl Fn() -> bool,
 ) -> Result<Option<GaussianSet>> {
     let path = out.join("end_scan.ply");
-    if path.exists() {
+    if resume && path.exists() {
         return crate::splat::ply::read_ply(&path).map(Some);
     }
     let cpu = StaticConfig::cpu();
