@@ -199,8 +199,8 @@ impl DepthView {
             let (inside, pixel, z) = self.camera.landing(Vec3::new(origin_x + voxel * i as f32, py, pz));
             let pixel = if inside { pixel } else { 0 }.min(last);
             let sdf = self.depth[pixel] - z;
-            // Not `sdf >= -behind`: a NaN depth counts (as +1, `min` passing over the NaN).
-            let counts = inside & !(sdf < -behind);
+            // A NaN depth counts (as +1, `min` passing over the NaN), as it always has.
+            let counts = inside & ((sdf >= -behind) | sdf.is_nan());
             let w = if counts { self.weight[pixel] } else { 0.0 };
             *sum += if counts { w * (sdf / truncation).min(1.0) } else { 0.0 };
             *weight += w;
