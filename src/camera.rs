@@ -72,8 +72,15 @@ impl Camera {
         if c.z <= 0.0 {
             return None;
         }
+        let (x, y) = self.image_point(c);
+        Some((x, y, c.z))
+    }
+
+    /// Camera coordinates `c` to continuous pixel coordinates (meaningful for c.z > 0).
+    #[inline]
+    fn image_point(&self, c: Vec3) -> (f32, f32) {
         let k = &self.intrinsics;
-        Some((k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy, c.z))
+        (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy)
     }
 
     /// The row-major index of the pixel world point `p` falls in and its depth,
@@ -90,7 +97,7 @@ impl Camera {
     pub fn landing(&self, p: Vec3) -> (bool, usize, f32) {
         let c = self.to_camera(p);
         let k = &self.intrinsics;
-        let (x, y) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
+        let (x, y) = self.image_point(c);
         // `&`, not `&&`: every test is evaluated, none is a branch.
         let inside = (c.z > 0.0) & (x >= 0.0) & (y >= 0.0) & (x < k.width as f32) & (y < k.height as f32);
         (inside, (y as u32).wrapping_mul(k.width).wrapping_add(x as u32) as usize, c.z)
