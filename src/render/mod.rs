@@ -206,7 +206,7 @@ pub fn crop(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> Vec
 }
 
 /// The rows of `region` in such an image, top to bottom.
-pub fn region_rows(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> impl Iterator<Item = &[f32]> {
+fn region_rows(image: &[f32], width: u32, channels: usize, region: [u32; 4]) -> impl Iterator<Item = &[f32]> {
     let [x0, y0, x1, y1] = region.map(|v| v as usize);
     let w = width as usize;
     (y0..y1).map(move |y| &image[channels * (y * w + x0)..channels * (y * w + x1)])

@@ -81,18 +81,30 @@ impl TileBins {
 
 /// Sort visible Gaussians (`proj[i]` is Some) front to back and bin them into tiles.
 pub fn bin_tiles(proj: &[Option<Projected>], width: u32, height: u32) -> TileBins {
-    let by_depth = proj.iter().enumerate().filter_map(|(i, p)| p.as_ref().map(|p| (p.depth, i as u32))).collect();
+    let by_depth =
+        proj.iter().enumerate().filter_map(|(i, p)| p.as_ref().map(|p| depth_key(p.depth, i as u32))).collect();
     let projected = |i: u32| proj[i as usize].as_ref().expect("sorted Gaussians are visible");
     bin_sorted(by_depth, projected, proj.len(), width, height, |_| true)
 }
 
-/// Bin the Gaussians `by_depth` lists (depth, index; `projected(index)` each
+/// The sort key of a Gaussian at `depth` with index `index`: keys order as
+/// (depth by `f32::total_cmp`, then index). Comparing one integer instead of a
+/// float pair makes the per-render sort several times cheaper, in the same order.
+pub(crate) fn depth_key(depth: f32, index: u32) -> u64 {
+    let bits = depth.to_bits();
+    // total_cmp's order as unsigned integers: a negative value's bits all
+    // flipped, a positive value's sign bit set.
+    let ordered = if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 };
+    (u64::from(ordered) << 32) | u64::from(index)
+}
+
+/// Bin the Gaussians `by_depth` lists (`depth_key`s; `projected(index)` each
 /// one's projection) of a set of `gaussian_count` into the tiles `keep` holds,
 /// the other tiles' lists left empty. Every kept tile's list is the one
 /// `bin_tiles` gives it when `by_depth` holds all the Gaussians that reach it:
 /// the same Gaussians in the same order, so compositing it gives the same pixels.
 pub(crate) fn bin_sorted<'a>(
-    mut by_depth: Vec<(f32, u32)>,
+    mut by_depth: Vec<u64>,
     projected: impl Fn(u32) -> &'a Projected + Sync,
     gaussian_count: usize,
     width: u32,
@@ -106,8 +118,8 @@ pub(crate) fn bin_sorted<'a>(
     let tiles_x = width.div_ceil(TILE);
     let tiles_y = height.div_ceil(TILE);
     // Unique keys (depth, index): the order is deterministic whatever the sort does.
-    by_depth.par_sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    let order: Vec<u32> = by_depth.iter().map(|&(_, i)| i).collect();
+    by_depth.par_sort_unstable();
+    let order: Vec<u32> = by_depth.iter().map(|&key| key as u32).collect();
     let splats: Vec<Splat> = order.par_iter().map(|&i| Splat::new(projected(i))).collect();
 
     let ntiles = (tiles_x * tiles_y) as usize;

@@ -84,7 +84,9 @@ impl Repaintable {
                 .into_par_iter()
                 .filter_map(|i| {
                     let p = now(i)?;
-                    raster::tiles_reached(&p.bbox, tiles_x).any(|t| touched[t]).then_some((p.depth, i as u32))
+                    raster::tiles_reached(&p.bbox, tiles_x)
+                        .any(|t| touched[t])
+                        .then(|| raster::depth_key(p.depth, i as u32))
                 })
                 .collect();
             let visible = |i: u32| now(i as usize).expect("binned Gaussians are visible");

@@ -555,3 +555,22 @@ fn fast_exp_matches_f64_exp_on_nonpositive_arguments_with_every_kernel_set() {
         assert!(below < 1e-37, "{}: far below the range the result is ~0, got {below}", k.name());
     }
 }
+
+#[test]
+fn depth_keys_order_as_depth_then_index() {
+    let depths =
+        [f32::NEG_INFINITY, -3.5, -1e-30, -0.0, 0.0, 1e-30, 0.25, 0.25, 7.0, f32::MAX, f32::INFINITY, f32::NAN];
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut pairs: Vec<(f32, u32)> =
+        (0..400).map(|_| (depths[rng.random_range(0..depths.len())], rng.random_range(0..50u32))).collect();
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let mut keys: Vec<u64> = pairs.iter().map(|&(d, i)| raster::depth_key(d, i)).collect();
+    let by_pair = keys.clone();
+    keys.sort_unstable();
+    assert_eq!(keys, by_pair, "integer keys sort as (depth by total_cmp, index)");
+    // Distinct pairs give distinct keys; equal pairs equal ones.
+    for (w, k) in pairs.windows(2).zip(by_pair.windows(2)) {
+        let same = w[0].0.to_bits() == w[1].0.to_bits() && w[0].1 == w[1].1;
+        assert_eq!(same, k[0] == k[1]);
+    }
+}

@@ -29,7 +29,7 @@ use super::views::TrainView;
 use crate::error::{Error, Result};
 use crate::motion::{extract_joint, kabsch, Rigid};
 use crate::render::project::{project_one, ProjectionCamera};
-use crate::render::{crop, region_rows, Repaint, Repaintable};
+use crate::render::{crop, Repaint, Repaintable};
 use crate::splat::GaussianSet;
 
 mod contact;
@@ -1518,9 +1518,10 @@ impl NodeTracker {
 
     /// The mean robust photometric loss of end-state `views` (time 1) for each of
     /// part `p`'s end poses `poses`, the rest as `parts` has it: what
-    /// `articulated_loss` gives each, from renders of only the pixels part `p`
-    /// reaches there; the other pixels are those of the view without the part,
-    /// rendered once.
+    /// `articulated_loss` gives each. Each view is rendered once with the part's
+    /// Gaussians transparent (the CPU rasterizer), and a pose only projects the
+    /// part's Gaussians and composites again the tiles they reach there
+    /// (`Repaintable`: those pixels as a whole render gives them, to the bit).
     fn end_losses_of_part_poses(
         &self,
         parts: &TrackedParts,
@@ -1531,47 +1532,39 @@ impl NodeTracker {
         let last = parts.poses.len() - 1;
         let bg = Vec3::from(self.config.eval_background);
         let cap = self.config.track.validation_residual_cap;
-        let in_part = |i: usize| i < self.binding.len() && parts.node_part[self.binding[i] as usize] == p + 1;
-        let at_pose = |pose: Option<NodePose>| {
-            let mut at = parts.poses[last].clone();
-            if let Some(pose) = pose {
-                at[p] = pose;
-            }
-            self.revealed.with(self.deformed(&parts.node_poses(&self.node_centres, &at), &self.gains[last]))
-        };
-        // Per view: its target and each pixel's residual without the part.
-        let without = at_pose(None);
-        let without = without.subset(&(0..without.len()).map(|i| !in_part(i)).collect::<Vec<_>>());
-        let bases: Vec<(Vec<f32>, ViewResiduals)> = views
+        let rows: Vec<usize> =
+            (0..self.binding.len()).filter(|&i| parts.node_part[self.binding[i] as usize] == p + 1).collect();
+        let mut without = self
+            .revealed
+            .with(self.deformed(&parts.node_poses(&self.node_centres, &parts.poses[last]), &self.gains[last]));
+        rows.iter().for_each(|&i| without.opacity_logits[i] = f32::NEG_INFINITY);
+        // Per view: the render without the part, its target and each pixel's residual.
+        let bases: Vec<(Repaintable, Vec<f32>, ViewResiduals)> = views
             .iter()
             .map(|v| {
                 let target = v.target(bg);
-                let r = self.backend.render(&without, &v.camera, &v.render_options(bg));
-                let base = ViewResiduals::new(pixel_residuals(&r.image().color, &target, cap));
-                (target, base)
+                let render = Repaintable::new(&without, &v.camera, &v.render_options(bg));
+                let base = ViewResiduals::new(pixel_residuals(render.color(), &target, cap));
+                (render, target, base)
             })
             .collect();
         poses
-            .iter()
+            .par_iter()
             .map(|&pose| {
-                let g = at_pose(Some(pose));
+                let mut at = parts.poses[last].clone();
+                at[p] = pose;
+                let moved = self.deformed_rows(&rows, &parts.node_poses(&self.node_centres, &at), &self.gains[last]);
                 let total: f64 = views
                     .iter()
                     .zip(&bases)
-                    .map(|(v, (target, base))| {
-                        let (w, h) = (v.camera.width(), v.camera.height());
-                        let sum = match footprint(&g, &v.camera, 0, in_part) {
-                            None => base.sum,
-                            Some(region) => {
-                                let r = self.backend.render_region(&g, &v.camera, region, &v.render_options(bg));
-                                base.sum_with(
-                                    w,
-                                    region,
-                                    &pixel_residuals(&r.image().color, &crop(target, w, 3, region), cap),
-                                )
-                            }
-                        };
-                        sum / f64::from(w * h)
+                    .map(|(v, (render, target, base))| {
+                        let repaint = render.repaint(&rows, &moved);
+                        let inside = repaint
+                            .pixels
+                            .iter()
+                            .zip(&repaint.colors)
+                            .map(|(&o, rgb)| pixel_residual(rgb, &target[3 * o..3 * o + 3], cap));
+                        base.sum_with(&repaint.pixels, inside) / f64::from(v.camera.width() * v.camera.height())
                     })
                     .sum();
                 (total / views.len().max(1) as f64) as f32
@@ -1726,15 +1719,26 @@ impl NodeTracker {
         let mut best_state = (self.articulation.clone(), self.knots[last].clone());
         let tracked_refit = best_state.clone();
         let mut replaced = false;
-        // Each candidate starts from the tracked refit; a later one must beat the
-        // best so far (the tracked pose or an earlier candidate) by the margin.
-        for pose in candidates {
-            let mut searched = tracked_refit.0.clone().expect("parts");
-            searched.poses[last][p] = pose;
-            self.knots[last] = tracked_refit.1.clone();
-            searched.carry(&self.node_centres, &searched.poses[last].clone(), &mut self.knots[last]);
+        // Each candidate starts from the tracked refit, so their refits are
+        // independent: they run side by side (each one's serial stretches leave
+        // a core to the other), and are judged in order below.
+        let refits: Vec<Option<(f32, TrackedParts, Vec<NodePose>)>> = candidates
+            .par_iter()
+            .map(|&pose| {
+                let mut trial = self.clone();
+                let mut searched = tracked_refit.0.clone().expect("parts");
+                searched.poses[last][p] = pose;
+                searched.carry(&trial.node_centres, &searched.poses[last].clone(), &mut trial.knots[last]);
+                trial.articulation = Some(searched);
+                let loss = trial.refit_end_poses_and(end_views, &[p])?;
+                Some((loss, trial.articulation.expect("parts"), trial.knots.swap_remove(last)))
+            })
+            .collect();
+        // A later candidate must beat the best so far (the tracked pose or an
+        // earlier candidate) by the margin.
+        for (loss, searched, knots) in refits.into_iter().flatten() {
             self.articulation = Some(searched);
-            let Some(loss) = self.refit_end_poses_and(end_views, &[p]) else { continue };
+            self.knots[last] = knots;
             // The tracked pose stands unless a searched one explains the end
             // state clearly better (storage seed 2: a drawer turned 46 degrees
             // for a 0.4 % lower loss), and the motion frames do not contradict it.
@@ -2234,10 +2238,10 @@ impl ViewResiduals {
         Self { residual, sum }
     }
 
-    /// The sum with the pixels `region` of an image `width` wide replaced by `inside`.
-    fn sum_with(&self, width: u32, region: [u32; 4], inside: &[f32]) -> f64 {
-        let replaced: f64 = region_rows(&self.residual, width, 1, region).flatten().map(|&e| f64::from(e)).sum();
-        self.sum - replaced + inside.iter().map(|&e| f64::from(e)).sum::<f64>()
+    /// The sum with the residuals of pixels `pixels` (row-major indices) replaced by `inside`.
+    fn sum_with(&self, pixels: &[usize], inside: impl Iterator<Item = f32>) -> f64 {
+        let replaced: f64 = pixels.iter().map(|&o| f64::from(self.residual[o])).sum();
+        self.sum - replaced + inside.map(f64::from).sum::<f64>()
     }
 }
 
