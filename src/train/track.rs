@@ -1559,11 +1559,7 @@ impl NodeTracker {
                     .zip(&bases)
                     .map(|(v, (render, target, base))| {
                         let repaint = render.repaint(&rows, &moved);
-                        let inside = repaint
-                            .pixels
-                            .iter()
-                            .zip(&repaint.colors)
-                            .map(|(&o, rgb)| pixel_residual(rgb, &target[3 * o..3 * o + 3], cap));
+                        let inside = repainted_residuals(&repaint, target, cap).map(|(_, e)| e);
                         base.sum_with(&repaint.pixels, inside) / f64::from(v.camera.width() * v.camera.height())
                     })
                     .sum();
@@ -2208,9 +2204,8 @@ impl CheckRenders<'_> {
 
     /// Set the residuals of the pixels `repaint` composited (of view `v`) in `residual`.
     fn patch(&self, v: usize, repaint: &Repaint, residual: &mut [f32]) {
-        let target = &self.targets[v];
-        for (&o, rgb) in repaint.pixels.iter().zip(&repaint.colors) {
-            residual[o] = pixel_residual(rgb, &target[3 * o..3 * o + 3], self.cap);
+        for (o, e) in repainted_residuals(repaint, &self.targets[v], self.cap) {
+            residual[o] = e;
         }
     }
 
@@ -2279,6 +2274,20 @@ fn residuals_where_changed(a: &[Vec<f32>], b: &[Vec<f32>], targets: &[Vec<f32>],
 /// The robust per-pixel residual: mean absolute error over the channels, capped at `cap`.
 fn pixel_residuals(rendered: &[f32], target: &[f32], cap: f32) -> Vec<f32> {
     rendered.chunks_exact(3).zip(target.chunks_exact(3)).map(|(x, y)| pixel_residual(x, y, cap)).collect()
+}
+
+/// The pixels `repaint` composited again (row-major indices) and their residuals
+/// (`pixel_residual`) against the view's `target` image.
+fn repainted_residuals<'a>(
+    repaint: &'a Repaint,
+    target: &'a [f32],
+    cap: f32,
+) -> impl Iterator<Item = (usize, f32)> + 'a {
+    repaint
+        .pixels
+        .iter()
+        .zip(&repaint.colors)
+        .map(move |(&o, rgb)| (o, pixel_residual(rgb, &target[3 * o..3 * o + 3], cap)))
 }
 
 /// One pixel's term of `pixel_residuals`: its colours `x` and `y`.
