@@ -185,7 +185,7 @@ impl Default for TrackConfig {
             end_iterations: 300,
             end_alpha_weight: 0.0,
             search_step: std::f32::consts::PI / 12.0,
-            end_scan_iterations: 3000,
+            end_scan_iterations: 2000,
             freeze_after_segments: 6,
             freeze_translation: 0.01,
             freeze_rotation: 0.02,
