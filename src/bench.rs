@@ -105,7 +105,7 @@ fn stage_times(gs: &GaussianSet, cam: &Camera, opts: &RenderOptions, grad: &[f32
         let (pg, _) = rasterize_backward(&bins, w, h, Background::Uniform(opts.background), &out, grad, None, None);
         t[3].push(clock.elapsed().as_secs_f64() * 1e3);
         let clock = Instant::now();
-        let raw = project_backward_all(gs, &proj, &pc, gs.sh_degree, &pg);
+        let raw = project_backward_all(gs, &proj, &pc, gs.sh_degree, &pg, None);
         t[4].push(clock.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box(raw);
     }

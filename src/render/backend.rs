@@ -127,6 +127,27 @@ impl Backend {
         self.backward_sets(&[gs], view, grad_color, grad_alpha, grad_depth).pop().expect("one set")
     }
 
+    /// [`Self::backward`] computing only the Gaussians `wanted` marks (see
+    /// [`super::backward_wanted`]; the GPU computes every row and zeroes the rest).
+    pub fn backward_wanted(
+        &self,
+        gs: &GaussianSet,
+        view: &View,
+        grad_color: &[f32],
+        grad_alpha: Option<&[f32]>,
+        grad_depth: Option<&[f32]>,
+        wanted: &[bool],
+    ) -> Gradients {
+        match view {
+            View::Cpu(r) => super::backward_wanted(gs, r, grad_color, grad_alpha, grad_depth, wanted),
+            View::Gpu(_) => {
+                let mut grads = self.backward(gs, view, grad_color, grad_alpha, grad_depth);
+                grads.keep_wanted(wanted);
+                grads
+            }
+        }
+    }
+
     /// Backward pass of a [`Self::render_sets`] view: one [`Gradients`] per set.
     pub fn backward_sets(
         &self,

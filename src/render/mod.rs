@@ -102,6 +102,24 @@ pub struct Gradients {
     pub radius: Vec<f32>,
 }
 
+impl Gradients {
+    /// Zero the rows `wanted` does not mark and count them not visible: what
+    /// [`backward_wanted`] leaves in them (a backend that computes every row
+    /// applies this after).
+    pub fn keep_wanted(&mut self, wanted: &[bool]) {
+        for group in crate::splat::ParamGroup::ALL {
+            let width = self.params.width(group);
+            let values = self.params.group_mut(group);
+            for (i, _) in wanted.iter().enumerate().filter(|(_, w)| !**w) {
+                values[width * i..width * (i + 1)].fill(0.0);
+            }
+        }
+        for (i, _) in wanted.iter().enumerate().filter(|(_, w)| !**w) {
+            (self.mean2d_grad_norm[i], self.visible[i], self.radius[i]) = (0.0, false, 0.0);
+        }
+    }
+}
+
 /// Render `gs` from `camera`.
 pub fn render(gs: &GaussianSet, camera: &Camera, options: &RenderOptions) -> Render {
     render_region(gs, camera, [0, 0, camera.width(), camera.height()], options)
@@ -233,18 +251,40 @@ pub fn backward_sets(
     grad_alpha: Option<&[f32]>,
     grad_depth: Option<&[f32]>,
 ) -> Vec<Gradients> {
+    backward_sets_of(sets, fwd, &raster::TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth, wanted: None })
+}
+
+/// [`backward`] computing only the gradients of the Gaussians `wanted` marks:
+/// the others' rows are zero and not visible ([`Gradients::keep_wanted`]), the
+/// wanted ones' as a full pass gives them, to the bit, for less work (a tracker
+/// fitting moving parts over a base that stands still).
+pub fn backward_wanted(
+    gs: &GaussianSet,
+    fwd: &Render,
+    grad_color: &[f32],
+    grad_alpha: Option<&[f32]>,
+    grad_depth: Option<&[f32]>,
+    wanted: &[bool],
+) -> Gradients {
+    assert_eq!(wanted.len(), gs.len(), "one flag per Gaussian");
+    let grads = raster::TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth, wanted: Some(wanted) };
+    backward_sets_of(&[gs], fwd, &grads).pop().expect("one set")
+}
+
+/// [`backward_sets`] from the image-space gradients `g` (`g.wanted`, when
+/// given, over the sets one after another).
+fn backward_sets_of(sets: &[&GaussianSet], fwd: &Render, g: &raster::TileGrads) -> Vec<Gradients> {
     let (w, h) = (fwd.width, fwd.height);
-    assert_eq!(grad_color.len(), (3 * w * h) as usize, "colour gradient must match the image");
+    assert_eq!(g.color.len(), (3 * w * h) as usize, "colour gradient must match the image");
     assert_eq!(sets.iter().map(|s| s.len()).sum::<usize>(), fwd.projected.len(), "the rendered sets");
-    let (proj_grads, bg) = raster::rasterize_backward(
+    let (proj_grads, bg) = raster::rasterize_backward_with(
+        lanes::Kernels::active(),
         &fwd.bins,
         w,
         h,
         background_of(&fwd.options, fwd.background_pixels.as_deref()),
         &fwd.image,
-        grad_color,
-        grad_alpha,
-        grad_depth,
+        g,
     );
     let ndc_scale = glam::Vec2::new(0.5 * w as f32, 0.5 * h as f32);
     let mut first = 0;
@@ -252,8 +292,10 @@ pub fn backward_sets(
         .map(|gs| {
             let rows = first..first + gs.len();
             first = rows.end;
-            let (projected, grads) = (&fwd.projected[rows.clone()], &proj_grads[rows]);
-            let (raw, sh_rest) = project::project_backward_all(gs, projected, &fwd.projection, fwd.sh_degree, grads);
+            let (projected, grads) = (&fwd.projected[rows.clone()], &proj_grads[rows.clone()]);
+            let wanted = g.wanted.map(|all| &all[rows.clone()]);
+            let (raw, sh_rest) =
+                project::project_backward_all(gs, projected, &fwd.projection, fwd.sh_degree, grads, wanted);
             let n = gs.len();
             let mut params = GaussianSet::new(gs.sh_degree);
             params.sh_rest = sh_rest;

@@ -347,15 +347,17 @@ fn quat_matrix_backward(q: Quat, g: Mat3) -> glam::Vec4 {
     glam::Vec4::new(gw, gx, gy, gz)
 }
 
-/// [`project_one_backward`] for every Gaussian that `projected` kept, in parallel.
-/// Returns the per-Gaussian gradients (None where culled) and the SH rest
-/// gradients as one flat buffer in the set's layout.
+/// [`project_one_backward`] for every Gaussian that `projected` kept and
+/// `wanted` asks for (None: all), in parallel. Returns the per-Gaussian
+/// gradients (None where culled or not wanted) and the SH rest gradients as one
+/// flat buffer in the set's layout (zero where None).
 pub fn project_backward_all(
     gs: &GaussianSet,
     projected: &[Option<Projected>],
     cam: &ProjectionCamera,
     sh_degree: u32,
     grads: &[ProjectedGrad],
+    wanted: Option<&[bool]>,
 ) -> (Vec<Option<RawGrad>>, Vec<f32>) {
     use rayon::prelude::*;
     let n = gs.len();
@@ -369,6 +371,7 @@ pub fn project_backward_all(
         .map(|(i, rest)| {
             projected[i]
                 .as_ref()
+                .filter(|_| wanted.is_none_or(|w| w[i]))
                 .map(|p| project_one_backward(gs, i, cam, sh_degree, p, &grads[i], &mut rest[..rest_w]))
         })
         .collect();

@@ -560,7 +560,7 @@ pub fn rasterize_backward(
     grad_alpha: Option<&[f32]>,
     grad_depth: Option<&[f32]>,
 ) -> (Vec<ProjectedGrad>, Vec3) {
-    let grads = TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth };
+    let grads = TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth, wanted: None };
     rasterize_backward_with(Kernels::active(), bins, width, height, background, fwd, &grads)
 }
 
@@ -585,11 +585,13 @@ pub fn rasterize_backward_with(
         slices.push(head);
         rest = tail;
     }
+    let wanted_by_rank: Option<Vec<bool>> = g.wanted.map(|w| bins.order.iter().map(|&i| w[i as usize]).collect());
+    let wanted = wanted_by_rank.as_deref();
     let bg_grads: Vec<Vec3> = slices
         .into_par_iter()
         .enumerate()
         .map(|(t, grads)| {
-            let tile = &TileInput { t, bins, width, height, background, fwd };
+            let tile = &TileInput { t, bins, width, height, background, fwd, wanted };
             dispatch!(kernels, |L; tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads| -> Vec3 {
                 if g.alpha.is_some() || g.depth.is_some() {
                     backward_tile::<true, L>(tile, grads, g)
@@ -624,13 +626,38 @@ struct TileInput<'a> {
     height: u32,
     background: Background<'a>,
     fwd: &'a RasterOutput,
+    /// Per rank: whether its gradients are wanted (None: all are).
+    wanted: Option<&'a [bool]>,
 }
 
-/// The image-space gradients the backward pass consumes: dL/d(colour, alpha, depth).
+/// The image-space gradients the backward pass consumes: dL/d(colour, alpha,
+/// depth), and which Gaussians' gradients are wanted (per Gaussian of the set;
+/// None: all). The others get zero gradients: their compositing is still
+/// undone, so every wanted gradient is the one a full pass gives, to the bit,
+/// but their own gradient arithmetic is skipped (a tracker fitting the moving
+/// parts of a scene whose base stands still).
 pub struct TileGrads<'a> {
     pub color: &'a [f32],
     pub alpha: Option<&'a [f32]>,
     pub depth: Option<&'a [f32]>,
+    pub wanted: Option<&'a [bool]>,
+}
+
+/// A tile's per-pixel state in the backward pass, back to front: transmittance
+/// before the current Gaussian, last composited position, and dL/d(outputs).
+/// The colour and depth gradients are fixed per pixel, so what lies behind the
+/// current Gaussian enters only through its dot product with them:
+/// behind = sum_c dL/dC_c (colour behind)_c + dL/dD (depth behind).
+struct BackwardPixels {
+    t_cur: Plane,
+    behind: Plane,
+    last: Plane,
+    gc: [Plane; 3],
+    gd: Plane,
+    /// dL/d(alpha) times the final transmittance: d(alpha)/d(alpha_k) = T_final / (1 - alpha_k).
+    ga_t: Plane,
+    /// Per row, one past the last list position any of its pixels composited.
+    row_last: [u32; TILE as usize],
 }
 
 /// Backward of one tile, writing its list entries' gradients; returns its share
@@ -638,136 +665,160 @@ pub struct TileGrads<'a> {
 /// (training from colour alone skips that arithmetic).
 #[inline(always)]
 fn backward_tile<const AUX: bool, L: Lanes>(tile: &TileInput, grads: &mut [ProjectedGrad], g: &TileGrads) -> Vec3 {
-    let TileInput { t, bins, width, height, background, fwd } = *tile;
+    let TileInput { t, bins, width, height, background, fwd, wanted } = *tile;
     let rect = bins.tile_rect(t, width, height);
     let list = bins.tile(t);
-    // Per-pixel state, back to front: transmittance before the current
-    // Gaussian, last composited position, and dL/d(outputs). The colour and
-    // depth gradients are fixed per pixel, so what lies behind the current
-    // Gaussian enters only through its dot product with them:
-    // behind = sum_c dL/dC_c (colour behind)_c + dL/dD (depth behind).
-    let mut t_cur = Plane::filled(0.0);
-    let mut behind = Plane::filled(0.0);
-    let mut last = Plane::filled(0.0);
-    let mut gc = [Plane::filled(0.0); 3];
-    let mut gd = Plane::filled(0.0);
-    // dL/d(alpha) times the final transmittance: d(alpha)/d(alpha_k) = T_final / (1 - alpha_k).
-    let mut ga_t = Plane::filled(0.0);
+    let mut px_state = BackwardPixels {
+        t_cur: Plane::filled(0.0),
+        behind: Plane::filled(0.0),
+        last: Plane::filled(0.0),
+        gc: [Plane::filled(0.0); 3],
+        gd: Plane::filled(0.0),
+        ga_t: Plane::filled(0.0),
+        row_last: [0u32; TILE as usize],
+    };
+    let s = &mut px_state;
     let mut bg_grad = Vec3::ZERO;
     let mut max_last = 0u32;
-    // Per row, one past the last list position any of its pixels composited.
-    let mut row_last = [0u32; TILE as usize];
     for py in rect[1]..rect[3] {
         for px in rect[0]..rect[2] {
             let l = ((py - rect[1]) * TILE + (px - rect[0])) as usize;
             let o = (py * width + px) as usize;
             let tf = fwd.final_t[o];
             let background = background.at(o);
-            t_cur[l] = tf;
-            last[l] = fwd.last[o] as f32;
+            s.t_cur[l] = tf;
+            s.last[l] = fwd.last[o] as f32;
             max_last = max_last.max(fwd.last[o]);
             let row = (py - rect[1]) as usize;
-            row_last[row] = row_last[row].max(fwd.last[o]);
+            s.row_last[row] = s.row_last[row].max(fwd.last[o]);
             for c in 0..3 {
-                gc[c][l] = g.color[3 * o + c];
-                behind[l] += g.color[3 * o + c] * background[c] * tf;
+                s.gc[c][l] = g.color[3 * o + c];
+                s.behind[l] += g.color[3 * o + c] * background[c] * tf;
                 bg_grad[c] += g.color[3 * o + c] * tf;
             }
-            ga_t[l] = g.alpha.map_or(0.0, |a| a[o]) * tf;
-            gd[l] = g.depth.map_or(0.0, |d| d[o]);
+            s.ga_t[l] = g.alpha.map_or(0.0, |a| a[o]) * tf;
+            s.gd[l] = g.depth.map_or(0.0, |d| d[o]);
         }
     }
     for k in (0..max_last as usize).rev() {
         if let Some(ahead) = k.checked_sub(PREFETCH_AHEAD) {
             prefetch(&bins.splats[list[ahead] as usize]);
         }
-        let sp = &bins.splats[list[k] as usize];
-        let col = [L::splat(sp.color.x), L::splat(sp.color.y), L::splat(sp.color.z)];
-        let z = L::splat(sp.depth);
-        let kf = L::splat(k as f32);
-        let mut acc_col = [L::ZERO; 3];
-        let mut acc_d = L::ZERO;
-        // Moments of p = dL/d(power) over the pixels (offsets dx, dy): the
-        // conic, 2D-mean and opacity gradients are linear in them. dy is one
-        // value per row, so the lane groups sum only p, p dx and p dx^2 (a
-        // small live set: AVX2 has 16 vector registers), and each row folds
-        // its sums into the dy moments.
-        let (mut m_1, mut m_x, mut m_xx) = (L::ZERO, L::ZERO, L::ZERO);
-        let (mut m_y, mut m_xy, mut m_yy) = (L::ZERO, L::ZERO, L::ZERO);
-        for_each_chord::<L>(
-            sp,
-            &rect,
-            #[inline(always)]
-            |row, lo, hi| {
-                if k as u32 >= row_last[row as usize] {
-                    return;
-                }
-                let (mut row_1, mut row_x) = (L::ZERO, L::ZERO);
-                for_each_lane_group(
-                    sp,
-                    &rect,
-                    row,
-                    lo,
-                    hi,
-                    #[inline(always)]
-                    |l, in_span, dx, power| {
-                        let composited = in_span & kf.cmp_lt(ld::<L>(&last, l));
-                        let Some((alpha, gauss, valid)) = sp.alpha(power, composited) else { return };
-                        let inv_one_minus = L::ONE / (L::ONE - alpha);
-                        let t_now: L = ld(&t_cur, l);
-                        let t_before = t_now * inv_one_minus;
-                        let w = valid.select(alpha * t_before, L::ZERO);
-                        let gcol: [L; 3] = [ld(&gc[0], l), ld(&gc[1], l), ld(&gc[2], l)];
-                        // dL/d(this Gaussian's colour and depth values) . (colour, depth).
-                        let mut value = gcol[0] * col[0] + gcol[1] * col[1] + gcol[2] * col[2];
-                        if AUX {
-                            let g_d: L = ld(&gd, l);
-                            value += g_d * z;
-                            acc_d += g_d * w;
-                        }
-                        for c in 0..3 {
-                            acc_col[c] += gcol[c] * w;
-                        }
-                        // d(out)/d(alpha) = value * T - (what lies behind) / (1 - alpha).
-                        let behind_now: L = ld(&behind, l);
-                        let mut dl_da = value * t_before - behind_now * inv_one_minus;
-                        if AUX {
-                            dl_da += ld::<L>(&ga_t, l) * inv_one_minus;
-                        }
-                        st(&mut behind, l, value.mul_add(w, behind_now));
-                        // t_before >= t_now where valid (it divides by 1 - alpha), and
-                        // T >= 0: max() is the masked update without a masked store.
-                        st(&mut t_cur, l, t_now.max(valid & t_before));
-                        // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
-                        let free = valid & (L::splat(sp.opacity) * gauss).cmp_le(L::splat(ALPHA_MAX));
-                        let dl_dpower = free & (dl_da * alpha);
-                        let u = dl_dpower * dx;
-                        row_1 += dl_dpower;
-                        row_x += u;
-                        m_xx = u.mul_add(dx, m_xx);
-                    },
-                );
-                let dy = L::splat(sp.row_dy(&rect, row));
-                m_1 += row_1;
-                m_x += row_x;
-                let row_y = row_1 * dy;
-                m_y += row_y;
-                m_yy = row_y.mul_add(dy, m_yy);
-                m_xy = row_x.mul_add(dy, m_xy);
-            },
-        );
-        // power = -(a dx^2 + c dy^2) / 2 - b dx dy with (dx, dy) = mean - pixel,
-        // and dL/d(opacity) = sum dL/d(alpha) gauss = sum p / opacity where alpha is free
-        // (visible Gaussians have opacity >= ALPHA_MIN).
-        let [a, b, c] = sp.conic;
-        let (mx, my) = (m_x.reduce_add(), m_y.reduce_add());
-        grads[k] = ProjectedGrad {
-            mean2d: Vec2::new(-(a * mx + b * my), -(c * my + b * mx)),
-            conic: [-0.5 * m_xx.reduce_add(), -m_xy.reduce_add(), -0.5 * m_yy.reduce_add()],
-            color: Vec3::new(acc_col[0].reduce_add(), acc_col[1].reduce_add(), acc_col[2].reduce_add()),
-            opacity: m_1.reduce_add() / sp.opacity,
-            depth: acc_d.reduce_add(),
-        };
+        let rank = list[k] as usize;
+        let sp = &bins.splats[rank];
+        if wanted.is_none_or(|w| w[rank]) {
+            grads[k] = splat_backward::<AUX, true, L>(sp, k, &rect, s);
+        } else {
+            splat_backward::<AUX, false, L>(sp, k, &rect, s);
+        }
     }
     bg_grad
+}
+
+/// Undo the compositing of the splat at list position `k` over the tile's
+/// pixels `s` and, when `GRAD`, return its gradients (zero otherwise).
+#[inline(always)]
+fn splat_backward<const AUX: bool, const GRAD: bool, L: Lanes>(
+    sp: &Splat,
+    k: usize,
+    rect: &[u32; 4],
+    s: &mut BackwardPixels,
+) -> ProjectedGrad {
+    let col = [L::splat(sp.color.x), L::splat(sp.color.y), L::splat(sp.color.z)];
+    let z = L::splat(sp.depth);
+    let kf = L::splat(k as f32);
+    let mut acc_col = [L::ZERO; 3];
+    let mut acc_d = L::ZERO;
+    // Moments of p = dL/d(power) over the pixels (offsets dx, dy): the
+    // conic, 2D-mean and opacity gradients are linear in them. dy is one
+    // value per row, so the lane groups sum only p, p dx and p dx^2 (a
+    // small live set: AVX2 has 16 vector registers), and each row folds
+    // its sums into the dy moments.
+    let (mut m_1, mut m_x, mut m_xx) = (L::ZERO, L::ZERO, L::ZERO);
+    let (mut m_y, mut m_xy, mut m_yy) = (L::ZERO, L::ZERO, L::ZERO);
+    for_each_chord::<L>(
+        sp,
+        rect,
+        #[inline(always)]
+        |row, lo, hi| {
+            if k as u32 >= s.row_last[row as usize] {
+                return;
+            }
+            let (mut row_1, mut row_x) = (L::ZERO, L::ZERO);
+            for_each_lane_group(
+                sp,
+                rect,
+                row,
+                lo,
+                hi,
+                #[inline(always)]
+                |l, in_span, dx, power| {
+                    let composited = in_span & kf.cmp_lt(ld::<L>(&s.last, l));
+                    let Some((alpha, gauss, valid)) = sp.alpha(power, composited) else { return };
+                    let inv_one_minus = L::ONE / (L::ONE - alpha);
+                    let t_now: L = ld(&s.t_cur, l);
+                    let t_before = t_now * inv_one_minus;
+                    let w = valid.select(alpha * t_before, L::ZERO);
+                    let gcol: [L; 3] = [ld(&s.gc[0], l), ld(&s.gc[1], l), ld(&s.gc[2], l)];
+                    // dL/d(this Gaussian's colour and depth values) . (colour, depth).
+                    let mut value = gcol[0] * col[0] + gcol[1] * col[1] + gcol[2] * col[2];
+                    if AUX {
+                        let g_d: L = ld(&s.gd, l);
+                        value += g_d * z;
+                        if GRAD {
+                            acc_d += g_d * w;
+                        }
+                    }
+                    let behind_now: L = ld(&s.behind, l);
+                    st(&mut s.behind, l, value.mul_add(w, behind_now));
+                    // t_before >= t_now where valid (it divides by 1 - alpha), and
+                    // T >= 0: max() is the masked update without a masked store.
+                    st(&mut s.t_cur, l, t_now.max(valid & t_before));
+                    if !GRAD {
+                        return;
+                    }
+                    for c in 0..3 {
+                        acc_col[c] += gcol[c] * w;
+                    }
+                    // d(out)/d(alpha) = value * T - (what lies behind) / (1 - alpha).
+                    let mut dl_da = value * t_before - behind_now * inv_one_minus;
+                    if AUX {
+                        dl_da += ld::<L>(&s.ga_t, l) * inv_one_minus;
+                    }
+                    // Where alpha was clamped at ALPHA_MAX it does not depend on opacity or shape.
+                    let free = valid & (L::splat(sp.opacity) * gauss).cmp_le(L::splat(ALPHA_MAX));
+                    let dl_dpower = free & (dl_da * alpha);
+                    let u = dl_dpower * dx;
+                    row_1 += dl_dpower;
+                    row_x += u;
+                    m_xx = u.mul_add(dx, m_xx);
+                },
+            );
+            if !GRAD {
+                return;
+            }
+            let dy = L::splat(sp.row_dy(rect, row));
+            m_1 += row_1;
+            m_x += row_x;
+            let row_y = row_1 * dy;
+            m_y += row_y;
+            m_yy = row_y.mul_add(dy, m_yy);
+            m_xy = row_x.mul_add(dy, m_xy);
+        },
+    );
+    if !GRAD {
+        return ProjectedGrad::default();
+    }
+    // power = -(a dx^2 + c dy^2) / 2 - b dx dy with (dx, dy) = mean - pixel,
+    // and dL/d(opacity) = sum dL/d(alpha) gauss = sum p / opacity where alpha is free
+    // (visible Gaussians have opacity >= ALPHA_MIN).
+    let [a, b, c] = sp.conic;
+    let (mx, my) = (m_x.reduce_add(), m_y.reduce_add());
+    ProjectedGrad {
+        mean2d: Vec2::new(-(a * mx + b * my), -(c * my + b * mx)),
+        conic: [-0.5 * m_xx.reduce_add(), -m_xy.reduce_add(), -0.5 * m_yy.reduce_add()],
+        color: Vec3::new(acc_col[0].reduce_add(), acc_col[1].reduce_add(), acc_col[2].reduce_add()),
+        opacity: m_1.reduce_add() / sp.opacity,
+        depth: acc_d.reduce_add(),
+    }
 }

@@ -142,7 +142,7 @@ fn every_kernel_set_gives_the_portable_gradients() {
     let w = weights(n);
     let (w_alpha, w_depth): (Vec<f32>, Vec<f32>) =
         (0..n).map(|i| ((i as f32 * 0.37).sin(), (i as f32 * 0.11).cos())).unzip();
-    let grads = raster::TileGrads { color: &w.c, alpha: Some(&w_alpha), depth: Some(&w_depth) };
+    let grads = raster::TileGrads { color: &w.c, alpha: Some(&w_alpha), depth: Some(&w_depth), wanted: None };
     let run = |k| {
         raster::rasterize_backward_with(
             k,
@@ -492,6 +492,49 @@ fn sets_rendered_together_equal_their_union_and_each_gets_its_rows_gradients() {
     assert_eq!(per_set[0].visible, all.visible[..split]);
     assert_eq!(per_set[1].mean2d_grad_norm, all.mean2d_grad_norm[split..]);
     assert_eq!(per_set[0].background, all.background);
+}
+
+#[test]
+fn gradients_of_the_wanted_gaussians_alone_are_the_full_passes_to_the_bit() {
+    let (gs, cam, bg) = dense_scene();
+    let r = render(&gs, &cam, &RenderOptions::uniform(bg));
+    let w = weights((cam.width() * cam.height()) as usize);
+    // Every third Gaussian not wanted: wanted ones in front of, between and behind them.
+    let wanted: Vec<bool> = (0..gs.len()).map(|i| i % 3 != 1).collect();
+    for aux in [false, true] {
+        let (a, d) = if aux { (Some(&w.a[..]), Some(&w.d[..])) } else { (None, None) };
+        let mut all = backward(&gs, &r, &w.c, a, d);
+        let only = backward_wanted(&gs, &r, &w.c, a, d, &wanted);
+        let skipped_visible = (0..gs.len()).filter(|&i| !wanted[i] && all.visible[i]).count();
+        assert!(skipped_visible > 10, "{skipped_visible} Gaussians not wanted in view");
+        assert!((0..gs.len()).any(|i| !wanted[i] && all.params.means[3 * i] != 0.0));
+        // What a backend that computes every row leaves after keeping the wanted ones.
+        all.keep_wanted(&wanted);
+        assert_eq!(only.params, all.params, "aux {aux}");
+        assert_eq!(only.mean2d_grad_norm, all.mean2d_grad_norm);
+        assert_eq!(only.visible, all.visible);
+        assert_eq!(only.radius, all.radius);
+        assert_eq!(only.background, all.background);
+    }
+    // Each kernel set, against its own full pass.
+    for kernels in Kernels::available() {
+        let run = |wanted: Option<&[bool]>| {
+            let grads = raster::TileGrads { color: &w.c, alpha: Some(&w.a), depth: None, wanted };
+            let background = raster::Background::Uniform(bg);
+            raster::rasterize_backward_with(kernels, &r.bins, cam.width(), cam.height(), background, &r.image, &grads)
+        };
+        let ((full, full_bg), (only, only_bg)) = (run(None), run(Some(&wanted)));
+        assert_eq!(full_bg, only_bg);
+        for (i, (f, o)) in full.iter().zip(&only).enumerate() {
+            let bits = |g: &super::project::ProjectedGrad| {
+                let mut v = vec![g.mean2d.x, g.mean2d.y, g.opacity, g.depth, g.color.x, g.color.y, g.color.z];
+                v.extend(g.conic);
+                v.into_iter().map(f32::to_bits).collect::<Vec<_>>()
+            };
+            let want = if wanted[i] { bits(f) } else { bits(&Default::default()) };
+            assert_eq!(bits(o), want, "Gaussian {i}, {}", kernels.name());
+        }
+    }
 }
 
 #[test]

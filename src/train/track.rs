@@ -811,6 +811,19 @@ impl NodeTracker {
         }
     }
 
+    /// Per Gaussian of a rendered set of `rendered` (the tracked Gaussians, then
+    /// the revealed ones): whether a tracking step reads its gradient when the
+    /// gains are not fitted. With the parts found, the base's nodes stand still
+    /// and only the parts' Gaussians and the revealed ones learn; before, every
+    /// node but the frozen ones.
+    fn gradients_wanted(&self, rendered: usize) -> Vec<bool> {
+        let moves = |k: usize| match &self.articulation {
+            Some(parts) => parts.node_part[k] != 0,
+            None => !self.frozen[k],
+        };
+        (0..rendered).map(|i| self.binding.get(i).is_none_or(|&k| moves(k as usize))).collect()
+    }
+
     /// Fit the next knot on the frames since the knot two before it: the new
     /// knot starts from constant-velocity extrapolation of the last two, and the
     /// new knot and the one before are refined together (earlier knots stay).
@@ -885,7 +898,9 @@ impl NodeTracker {
             let g = if articulated { self.revealed.with(deformed) } else { deformed };
             let in_tail = i >= per_segment - tail;
             let whole = [0, 0, view.camera.width(), view.camera.height()];
-            let fit = region_step(&self.backend, &g, view, bg, whole, c.lambda_dssim, 0.0, c.track.depth_weight);
+            let wanted = (c.track.lr_gain == 0.0).then(|| self.gradients_wanted(g.len()));
+            let depth_weight = c.track.depth_weight;
+            let fit = region_step(&self.backend, &g, view, bg, whole, c.lambda_dssim, 0.0, depth_weight, wanted.as_deref());
             let tracked = self.gaussians.len();
             if articulated && !self.revealed.is_empty() {
                 self.revealed.step(&fit.grads.params.rows(tracked..g.len()));
@@ -1498,7 +1513,11 @@ impl NodeTracker {
         region: [u32; 4],
     ) -> (Vec<f32>, f32) {
         let (lambda_dssim, alpha_weight) = (self.config.lambda_dssim, self.config.track.end_alpha_weight);
-        let fit = region_step(&self.backend, g, view, bg, region, lambda_dssim, alpha_weight, 0.0);
+        // Only the parts' Gaussians move: the base's and the revealed ones' gradients are read by nothing.
+        let parts = self.articulation.as_ref().expect("parts");
+        let wanted: Vec<bool> =
+            (0..g.len()).map(|i| self.binding.get(i).is_some_and(|&k| parts.node_part[k as usize] != 0)).collect();
+        let fit = region_step(&self.backend, g, view, bg, region, lambda_dssim, alpha_weight, 0.0, Some(&wanted));
         let at = self.photometric_node_gradient(poses, g, &fit.grads.params);
         let parts = self.articulation.as_ref().expect("parts");
         let last = parts.poses.len() - 1;
@@ -2133,6 +2152,7 @@ fn region_step(
     lambda_dssim: f32,
     alpha_weight: f32,
     depth_weight: f32,
+    wanted: Option<&[bool]>,
 ) -> RegionStep {
     let (width, height) = (view.camera.width(), view.camera.height());
     let render = backend.render_region(g, &view.camera, region, &view.render_options(bg));
@@ -2156,7 +2176,11 @@ fn region_step(
             view.depth_loss(&image.depth, depth_weight).map(|(_, grad)| grad)
         })
         .flatten();
-    let grads = backend.backward(g, &render, &l.grad, alpha_grad.as_deref(), depth.as_deref());
+    let (alpha_grad, depth) = (alpha_grad.as_deref(), depth.as_deref());
+    let grads = match wanted {
+        Some(wanted) => backend.backward_wanted(g, &render, &l.grad, alpha_grad, depth, wanted),
+        None => backend.backward(g, &render, &l.grad, alpha_grad, depth),
+    };
     RegionStep { render, target, loss: l.loss * share, grads }
 }
 
