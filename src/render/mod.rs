@@ -251,7 +251,11 @@ pub fn backward_sets(
     grad_alpha: Option<&[f32]>,
     grad_depth: Option<&[f32]>,
 ) -> Vec<Gradients> {
-    backward_sets_of(sets, fwd, &raster::TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth, wanted: None })
+    backward_sets_of(
+        sets,
+        fwd,
+        &raster::TileGrads { color: grad_color, alpha: grad_alpha, depth: grad_depth, wanted: None },
+    )
 }
 
 /// [`backward`] computing only the gradients of the Gaussians `wanted` marks:

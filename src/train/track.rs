@@ -900,7 +900,8 @@ impl NodeTracker {
             let whole = [0, 0, view.camera.width(), view.camera.height()];
             let wanted = (c.track.lr_gain == 0.0).then(|| self.gradients_wanted(g.len()));
             let depth_weight = c.track.depth_weight;
-            let fit = region_step(&self.backend, &g, view, bg, whole, c.lambda_dssim, 0.0, depth_weight, wanted.as_deref());
+            let fit =
+                region_step(&self.backend, &g, view, bg, whole, c.lambda_dssim, 0.0, depth_weight, wanted.as_deref());
             let tracked = self.gaussians.len();
             if articulated && !self.revealed.is_empty() {
                 self.revealed.step(&fit.grads.params.rows(tracked..g.len()));
