@@ -1718,7 +1718,16 @@ impl NodeTracker {
             // (a fragment of a panel, a shading change) is not worth them.
             let rest = self.articulated_loss(&parts, &parts.node_part, &check);
             let best = scored.first().map_or(f32::INFINITY, |s| s.0);
-            tracing::info!(part = p + 1, rest, best, "stage II: a candidate's coarse search against rest");
+            let centre = self.labelled_centroid(&parts.node_part, p + 1).to_array();
+            let nodes = parts.nodes_labelled(p + 1).len();
+            tracing::info!(
+                part = p + 1,
+                nodes,
+                ?centre,
+                rest,
+                best,
+                "stage II: a candidate's coarse search against rest"
+            );
             if best >= rest {
                 return false;
             }
@@ -1772,6 +1781,14 @@ impl NodeTracker {
                 best_state = (self.articulation.clone(), self.knots[last].clone());
                 replaced = true;
             }
+        }
+        if !replaced && from_rest {
+            tracing::info!(
+                part = p + 1,
+                from_rest = best_loss,
+                needed = best_loss * (1.0 - self.config.track.merge_tolerance),
+                "stage II: a candidate refused: no searched end pose explains the end state clearly better than its refit from rest"
+            );
         }
         self.articulation = best_state.0;
         self.knots[last] = best_state.1;
