@@ -147,7 +147,7 @@ pub fn time_render(backend: &Backend, gs: &GaussianSet, cam: &Camera, repeats: u
         fwd.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
         let r2 = backend.render(gs, cam, &opts);
-        let g = backend.backward(gs, &r2, &grad, None, None);
+        let g = backend.backward(gs, &r2, &grad, None, None, None);
         both.push(t.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box((r, g));
     }

@@ -219,7 +219,7 @@ fn a_scene_too_large_for_the_device_runs_on_the_cpu_backend() {
     let cpu = aim::render::render(&gs, &camera, &options);
     assert!(view.image().color == cpu.image.color, "the CPU backend's image");
     let (gc, ga, _) = pixel_gradients((side * side) as usize, 13);
-    let grads = backend.backward(&gs, &view, &gc, Some(&ga), None);
+    let grads = backend.backward(&gs, &view, &gc, Some(&ga), None, None);
     let cpu_grads = aim::render::backward(&gs, &cpu, &gc, Some(&ga), None);
     for group in ParamGroup::ALL {
         assert!(grads.params.group(group) == cpu_grads.params.group(group), "{group:?} gradients");

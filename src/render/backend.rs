@@ -115,7 +115,9 @@ impl Backend {
         }
     }
 
-    /// Backward pass of `view`, a render of `gs` by this backend (see [`super::backward`]).
+    /// Backward pass of `view`, a render of `gs` by this backend (see
+    /// [`super::backward`]); with `wanted`, only those Gaussians' gradients (see
+    /// [`super::backward_wanted`]: the GPU computes every row and zeroes the rest).
     pub fn backward(
         &self,
         gs: &GaussianSet,
@@ -123,26 +125,16 @@ impl Backend {
         grad_color: &[f32],
         grad_alpha: Option<&[f32]>,
         grad_depth: Option<&[f32]>,
+        wanted: Option<&[bool]>,
     ) -> Gradients {
-        self.backward_sets(&[gs], view, grad_color, grad_alpha, grad_depth).pop().expect("one set")
-    }
-
-    /// [`Self::backward`] computing only the Gaussians `wanted` marks (see
-    /// [`super::backward_wanted`]; the GPU computes every row and zeroes the rest).
-    pub fn backward_wanted(
-        &self,
-        gs: &GaussianSet,
-        view: &View,
-        grad_color: &[f32],
-        grad_alpha: Option<&[f32]>,
-        grad_depth: Option<&[f32]>,
-        wanted: &[bool],
-    ) -> Gradients {
-        match view {
-            View::Cpu(r) => super::backward_wanted(gs, r, grad_color, grad_alpha, grad_depth, wanted),
-            View::Gpu(_) => {
-                let mut grads = self.backward(gs, view, grad_color, grad_alpha, grad_depth);
-                grads.keep_wanted(wanted);
+        match (view, wanted) {
+            (View::Cpu(r), Some(wanted)) => super::backward_wanted(gs, r, grad_color, grad_alpha, grad_depth, wanted),
+            _ => {
+                let mut grads =
+                    self.backward_sets(&[gs], view, grad_color, grad_alpha, grad_depth).pop().expect("one set");
+                if let Some(wanted) = wanted {
+                    grads.keep_wanted(wanted);
+                }
                 grads
             }
         }

@@ -157,8 +157,14 @@ impl GaussianTrainer {
         let loss =
             loss_and_grad(&image.color, &target, r.width() as usize, r.height() as usize, self.config.lambda_dssim);
         let depth = view.depth_loss(&image.depth, self.config.depth_weight);
-        let grads =
-            self.backend.backward(&self.gaussians, &r, &loss.grad, None, depth.as_ref().map(|(_, g)| g.as_slice()));
+        let grads = self.backend.backward(
+            &self.gaussians,
+            &r,
+            &loss.grad,
+            None,
+            depth.as_ref().map(|(_, g)| g.as_slice()),
+            None,
+        );
         let d = &self.config.density;
         let total = loss.loss + depth.as_ref().map_or(0.0, |(l, _)| *l);
         let mut report =

@@ -812,16 +812,16 @@ impl NodeTracker {
     }
 
     /// Per Gaussian of a rendered set of `rendered` (the tracked Gaussians, then
-    /// the revealed ones): whether a tracking step reads its gradient when the
-    /// gains are not fitted. With the parts found, the base's nodes stand still
-    /// and only the parts' Gaussians and the revealed ones learn; before, every
-    /// node but the frozen ones.
-    fn gradients_wanted(&self, rendered: usize) -> Vec<bool> {
+    /// the revealed ones): whether a fit of the node poses reads its gradient
+    /// (the gains not fitted). With the parts found, the base's nodes stand still
+    /// and only the parts' Gaussians move; before, every node but the frozen
+    /// ones. The revealed ones when `revealed_learn` (a tracking step trains them).
+    fn gradients_wanted(&self, rendered: usize, revealed_learn: bool) -> Vec<bool> {
         let moves = |k: usize| match &self.articulation {
             Some(parts) => parts.node_part[k] != 0,
             None => !self.frozen[k],
         };
-        (0..rendered).map(|i| self.binding.get(i).is_none_or(|&k| moves(k as usize))).collect()
+        (0..rendered).map(|i| self.binding.get(i).map_or(revealed_learn, |&k| moves(k as usize))).collect()
     }
 
     /// Fit the next knot on the frames since the knot two before it: the new
@@ -898,7 +898,7 @@ impl NodeTracker {
             let g = if articulated { self.revealed.with(deformed) } else { deformed };
             let in_tail = i >= per_segment - tail;
             let whole = [0, 0, view.camera.width(), view.camera.height()];
-            let wanted = (c.track.lr_gain == 0.0).then(|| self.gradients_wanted(g.len()));
+            let wanted = (c.track.lr_gain == 0.0).then(|| self.gradients_wanted(g.len(), true));
             let depth_weight = c.track.depth_weight;
             let fit =
                 region_step(&self.backend, &g, view, bg, whole, c.lambda_dssim, 0.0, depth_weight, wanted.as_deref());
@@ -1515,9 +1515,7 @@ impl NodeTracker {
     ) -> (Vec<f32>, f32) {
         let (lambda_dssim, alpha_weight) = (self.config.lambda_dssim, self.config.track.end_alpha_weight);
         // Only the parts' Gaussians move: the base's and the revealed ones' gradients are read by nothing.
-        let parts = self.articulation.as_ref().expect("parts");
-        let wanted: Vec<bool> =
-            (0..g.len()).map(|i| self.binding.get(i).is_some_and(|&k| parts.node_part[k as usize] != 0)).collect();
+        let wanted = self.gradients_wanted(g.len(), false);
         let fit = region_step(&self.backend, g, view, bg, region, lambda_dssim, alpha_weight, 0.0, Some(&wanted));
         let at = self.photometric_node_gradient(poses, g, &fit.grads.params);
         let parts = self.articulation.as_ref().expect("parts");
@@ -2194,11 +2192,7 @@ fn region_step(
             view.depth_loss(&image.depth, depth_weight).map(|(_, grad)| grad)
         })
         .flatten();
-    let (alpha_grad, depth) = (alpha_grad.as_deref(), depth.as_deref());
-    let grads = match wanted {
-        Some(wanted) => backend.backward_wanted(g, &render, &l.grad, alpha_grad, depth, wanted),
-        None => backend.backward(g, &render, &l.grad, alpha_grad, depth),
-    };
+    let grads = backend.backward(g, &render, &l.grad, alpha_grad.as_deref(), depth.as_deref(), wanted);
     RegionStep { render, target, loss: l.loss * share, grads }
 }
 
