@@ -500,11 +500,10 @@ impl NodeTracker {
         let own = self.articulated_loss(parts, &parts.node_part, views);
         let rest = self.articulated_loss(parts, &relabel(0), views);
         let allowed = own + JOIN_SHARE * (rest - own).max(0.0);
-        (0..p)
-            .map(|q| (q, self.articulated_loss(parts, &relabel(q + 1), views)))
-            .filter(|(_, loss)| *loss <= allowed)
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-            .map(|(q, _)| q)
+        let joined: Vec<(usize, f32)> =
+            (0..p).map(|q| (q, self.articulated_loss(parts, &relabel(q + 1), views))).collect();
+        tracing::info!(part = p + 1, own, rest, allowed, joined = ?joined, "stage II: a found part's pieces carried by each other part");
+        joined.into_iter().filter(|(_, loss)| *loss <= allowed).min_by(|a, b| a.1.total_cmp(&b.1)).map(|(q, _)| q)
     }
 
     /// Whether part `p` (found from a group of `candidate_nodes` nodes whose
@@ -1201,6 +1200,49 @@ mod tests {
         let parts = tracker.articulation.clone().expect("parts");
         assert_eq!(parts.centres.len(), 1);
         assert_eq!(parts.node_part.iter().map(|&l| l == 1).collect::<Vec<_>>(), door_nodes, "the door kept whole");
+    }
+
+    #[test]
+    fn a_narrow_door_is_found_where_the_rest_of_the_images_is_wrong_too() {
+        // A narrow door at the end of a long plate, truly a quarter turn open, no
+        // part tracked. Every end-state pixel carries noise (no scan is exact),
+        // so the door's gain over rest is a small share of the whole images'
+        // loss: under the 30 % margin set here, as a small drawer's is under the
+        // benchmark's 1 %. Where the door moved, its pose explains the views
+        // clearly better than rest, which is what finds it.
+        use std::f32::consts::FRAC_PI_2;
+        let door = Door { from: 0.72, to: 0.9, hinge: 0.72, angle: -FRAC_PI_2 };
+        let (mut tracker, members, end) = panels(-0.9, 0.9, 2400, 256, &[door], 1.0);
+        let (_, _, half) = panels(-0.9, 0.9, 2400, 256, &[door], 0.5);
+        tracker.config.track.merge_tolerance = 0.3;
+        let frames = views_of(&half, 0.5, 1);
+        let mut end_views = views_of(&end, 1.0, 16);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for v in &mut end_views {
+            v.premultiplied.iter_mut().for_each(|c| *c += rng.random_range(-0.08..0.08f32));
+        }
+        // The premise: the door at its true pose gains less than the margin over rest, on the whole images.
+        let door_nodes: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.x > door.from)).collect();
+        let centre = tracker.labelled_centroid(&door_nodes, 1);
+        let truth = parts_at(&tracker, &door_nodes, &[turn_about(door.angle, Vec3::new(door.hinge, 0.0, 0.0), centre)]);
+        let views: Vec<&TrainView> = end_views.iter().collect();
+        let own = tracker.articulated_loss(&truth, &truth.node_part, &views);
+        let rest = tracker.articulated_loss(&truth, &vec![0; door_nodes.len()], &views);
+        assert!(rest > own && rest < 1.3 * own, "the door's gain over rest: {rest} -> {own}");
+        let none = vec![false; tracker.node_centres.len()];
+        assert_eq!(tracker.discover_on_end_state(&frames, &end_views, &none, &|| false), 1, "the door found");
+        let parts = tracker.articulation.clone().expect("parts");
+        assert_eq!(parts.centres.len(), 1);
+        let found = tracker.gaussians_labelled(&parts.node_part, 1);
+        let on_door = found.iter().filter(|i| members[0].contains(i)).count();
+        assert!(on_door as f32 >= 0.9 * found.len() as f32, "{on_door} of the part's {} on the door", found.len());
+        // The strip by the hinge barely moves, so it stays in the base: on a door
+        // this narrow that is two fifths of it, and the fit settles short of 90 degrees.
+        assert!(on_door as f32 >= 0.5 * members[0].len() as f32, "{on_door} of the door's {} found", members[0].len());
+        let c = parts.centres[0];
+        let open = crate::motion::extract_joint(&parts.poses[2][0].to_rigid(c), c.as_dvec3());
+        assert!(open.axis.dot(DVec3::Y).abs() > 5f64.to_radians().cos(), "axis {:?}", open.axis);
+        assert!((open.amount.to_degrees() - 90.0).abs() < 20.0, "opened {} deg", open.amount.to_degrees());
     }
 
     #[test]
