@@ -1376,8 +1376,8 @@ impl NodeTracker {
             let rest = mean_residual(&at_rest, &targets, cap);
             let (changed_now, changed_rest) = residuals_where_changed(&now, &at_rest, &targets, cap);
             let tolerance = self.config.track.merge_tolerance;
-            let mut best =
-                (rest <= current || changed_rest <= changed_now * (1.0 + tolerance)).then_some((0, at_rest, rest));
+            let mut best = (!explains_more_than_at_rest(current, rest, changed_now, changed_rest, tolerance))
+                .then_some((0, at_rest, rest));
             let allowed = current + JOIN_SHARE * (rest - current).max(0.0);
             for p in (1..=parts.centres.len()).filter(|&p| p != q && size(&node_part, p) > 0) {
                 let renders = self.articulated_renders(&parts, &relabel(p), &check);
@@ -1762,7 +1762,6 @@ impl NodeTracker {
             })
             .collect();
         let tolerance = self.config.track.merge_tolerance;
-        let (cap, targets) = (self.config.track.validation_residual_cap, self.targets(&check));
         // A later candidate must beat the best so far (the tracked pose or an
         // earlier candidate) by the margin.
         for (loss, searched, knots) in refits.into_iter().flatten() {
@@ -1777,12 +1776,18 @@ impl NodeTracker {
                 // margin on the pixels the two differ. The refits' whole-image
                 // loss asked a small part for a gain of 1 % of the whole object's
                 // residual (storage_complex's drawer 5: 0.78 %, refused).
+                let (cap, targets) = (self.config.track.validation_residual_cap, self.targets(&check));
                 let at_rest: Vec<usize> = searched.node_part.iter().map(|&l| if l == p + 1 { 0 } else { l }).collect();
                 let moved = self.articulated_renders(searched, &searched.node_part, &check);
                 let rest = self.articulated_renders(searched, &at_rest, &check);
                 let (rest_changed, moved_changed) = residuals_where_changed(&rest, &moved, &targets, cap);
-                let is_part = mean_residual(&moved, &targets, cap) < mean_residual(&rest, &targets, cap)
-                    && rest_changed > moved_changed * (1.0 + tolerance);
+                let is_part = explains_more_than_at_rest(
+                    mean_residual(&moved, &targets, cap),
+                    mean_residual(&rest, &targets, cap),
+                    moved_changed,
+                    rest_changed,
+                    tolerance,
+                );
                 tracing::info!(
                     part = p + 1,
                     rest_changed,
@@ -2320,6 +2325,14 @@ fn mean_of(values: impl ExactSizeIterator<Item = f32>) -> f32 {
 /// A colour change smaller than this (any channel) is no change: a display's
 /// quantum, below which a Gaussian's far tail moves pixels without moving content.
 const CHANGED: f32 = 1.0 / 255.0;
+
+/// Occam's test of a part against its nodes at rest (the rest as it is): the
+/// part explains the views better (`moved` against `at_rest`, mean residuals)
+/// and, on the pixels the two differ (`moved_changed` against `rest_changed`,
+/// summed residuals), by more than `tolerance`.
+fn explains_more_than_at_rest(moved: f32, at_rest: f32, moved_changed: f32, rest_changed: f32, tolerance: f32) -> bool {
+    at_rest > moved && rest_changed > moved_changed * (1.0 + tolerance)
+}
 
 /// The summed residuals (`pixel_residuals`) of `a` and of `b` against `targets`
 /// over the pixels where `a` and `b` differ by more than `CHANGED`.
