@@ -132,7 +132,8 @@ pub struct StageTwoInput {
     /// Held-out motion frames (may be empty).
     pub test: Vec<TrainView>,
     /// The start state's views (the dual field trains on them; node tracking
-    /// reads their cameras for revealed content). May be empty for node tracking.
+    /// reads their cameras for revealed content and for the content a part
+    /// carries out of sight). May be empty for node tracking.
     pub scan: Vec<TrainView>,
     /// The end state's views (after the hand lets go); may be empty.
     pub end: Vec<TrainView>,
@@ -147,7 +148,7 @@ impl StageTwoInput {
         let has = |phase: &str| dataset.join(phase).join("transforms_train.json").exists();
         let scan_needed = match cfg.method {
             StageTwoMethod::DualField => true,
-            StageTwoMethod::NodeTrack => cfg.track.revealed_gaussians > 0 && has("start"),
+            StageTwoMethod::NodeTrack => (cfg.track.revealed_gaussians > 0 || cfg.track.carry_content) && has("start"),
         };
         let scan =
             if scan_needed { load_phase_views(dataset, Phase::Scan, cfg.resolution, false)?.0 } else { Vec::new() };
@@ -293,6 +294,7 @@ fn run_node_track(
     mut progress: impl FnMut(StageTwoProgress<'_>),
 ) -> Result<DynamicOutcome> {
     let out = run.out;
+    let start_cameras: Vec<_> = scan.iter().map(|v| v.camera).collect();
     if frames.is_empty() {
         return Err(Error::bad_file(run.source, "no motion frames to track"));
     }
@@ -312,8 +314,7 @@ fn run_node_track(
         (t, elapsed)
     } else {
         // The scan's cameras show where the start state's hidden volume is (for revealed content).
-        let scan: Vec<_> = scan.iter().map(|v| v.camera).collect();
-        let mut tracker = NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?, &scan)?;
+        let mut tracker = NodeTracker::new(cfg, &crate::splat::ply::read_ply(run.static_ply)?, &start_cameras)?;
         tracker.take_hold(&frames, &end_views);
         (tracker, 0.0)
     };
@@ -354,10 +355,16 @@ fn run_node_track(
     if !tracked? {
         return Ok(interrupted(&tracker));
     }
-    if let Some(scan) = scan {
-        let Some(scan) = scan? else { return Ok(interrupted(&tracker)) };
+    let end_scan = match scan {
+        Some(scan) => match scan? {
+            Some(scan) => Some(scan),
+            None => return Ok(interrupted(&tracker)),
+        },
+        None => None,
+    };
+    if let Some(scan) = &end_scan {
         let cameras: Vec<_> = end_views.iter().map(|v| v.camera).collect();
-        tracker.end_scan = EndScan::new(&scan, tracker.object_size, &cameras);
+        tracker.end_scan = EndScan::new(scan, tracker.object_size, &cameras);
     }
     // The end phase is not checkpointed (a resumed run does it again from the
     // tracking's checkpoint): an interrupt stops it between its steps (and
@@ -378,6 +385,11 @@ fn run_node_track(
     }
     // A tracked part that still looks wrong where it moved is not a part.
     let returned = tracker.drop_parts_that_look_wrong(&end_views);
+    // What the tracked parts that stand brought out of hiding is theirs before
+    // other parts are looked for where the end state shows the start state moved.
+    if let (Some(scan), true) = (&end_scan, tracker.config.track.carry_content) {
+        tracker.carry_swept_content(scan, &start_cameras);
+    }
     // Parts the tracking never grouped, found where the end state shows the start state moved.
     if tracker.discover_on_end_state(&frames, &end_views, &returned, &stop) > 0 {
         tracker.merge_redundant_parts(&frames, &end_views);

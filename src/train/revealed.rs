@@ -26,7 +26,7 @@ const CANDIDATES_PER_GAUSSIAN: usize = 16;
 const SURFACE_ALPHA: f32 = 0.5;
 /// A point this far (times the object size) behind a view's surface counts as hidden
 /// from that view (stage I's depth on textureless walls spreads by a few centimetres).
-const HIDDEN_MARGIN: f32 = 0.03;
+pub const HIDDEN_MARGIN: f32 = 0.03;
 /// Starting opacity: faint, so what is revealed is first seen through.
 const START_OPACITY: f32 = 0.1;
 /// Adam steps of the trained groups (3DGS's colour and opacity rates).
@@ -52,25 +52,11 @@ impl RevealedContent {
             let candidates: Vec<Vec3> = (0..count * CANDIDATES_PER_GAUSSIAN)
                 .map(|_| lo + (hi - lo) * Vec3::new(rng.random(), rng.random(), rng.random()))
                 .collect();
-            let margin = HIDDEN_MARGIN * size;
-            let mut hidden = vec![true; candidates.len()];
-            let mut seen = vec![false; candidates.len()];
-            for camera in scan {
-                let r = render(start, camera, &RenderOptions::uniform(Vec3::ZERO));
-                for (k, p) in candidates.iter().enumerate() {
-                    let Some((pixel, z)) = camera.pixel_of(*p) else { continue };
-                    let alpha = r.image.alpha[pixel];
-                    seen[k] = true;
-                    if alpha < SURFACE_ALPHA || z < r.image.depth[pixel] / alpha + margin {
-                        hidden[k] = false;
-                    }
-                }
-            }
-            let kept: Vec<Vec3> = candidates
-                .iter()
-                .zip(hidden.iter().zip(&seen))
-                .filter(|(_, (h, s))| **h && **s)
-                .map(|(p, _)| *p)
+            let kept: Vec<Vec3> = hidden_in_start_state(start, scan, &candidates, HIDDEN_MARGIN * size)
+                .into_iter()
+                .zip(&candidates)
+                .filter(|(h, _)| *h)
+                .map(|(_, p)| *p)
                 .take(count)
                 .collect();
             // Spheres that together about fill the hidden volume.
@@ -123,6 +109,26 @@ impl RevealedContent {
 
 /// Random stream of the candidate points.
 const STREAM_REVEALED: u64 = 23;
+
+/// Per point of `points`: whether some camera of `scan` has it in frame and every
+/// one that does sees the surface of `start` at least `margin` in front of it
+/// (the start state could not have shown it).
+pub fn hidden_in_start_state(start: &GaussianSet, scan: &[Camera], points: &[Vec3], margin: f32) -> Vec<bool> {
+    let mut hidden = vec![true; points.len()];
+    let mut seen = vec![false; points.len()];
+    for camera in scan {
+        let r = render(start, camera, &RenderOptions::uniform(Vec3::ZERO));
+        for (k, p) in points.iter().enumerate() {
+            let Some((pixel, z)) = camera.pixel_of(*p) else { continue };
+            let alpha = r.image.alpha[pixel];
+            seen[k] = true;
+            if alpha < SURFACE_ALPHA || z < r.image.depth[pixel] / alpha + margin {
+                hidden[k] = false;
+            }
+        }
+    }
+    hidden.iter().zip(&seen).map(|(h, s)| *h && *s).collect()
+}
 
 fn bounds(g: &GaussianSet) -> (Vec3, Vec3) {
     (0..g.len()).fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), i| {

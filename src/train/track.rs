@@ -32,6 +32,7 @@ use crate::render::project::{project_one, ProjectionCamera};
 use crate::render::{crop, Repaint, Repaintable};
 use crate::splat::GaussianSet;
 
+mod carried;
 mod contact;
 mod end_scan;
 mod end_state;
@@ -150,6 +151,16 @@ pub struct TrackConfig {
     /// storage drawer, whose hidden body the static set explains as not moving
     /// (docs/training.md).
     pub revealed_gaussians: usize,
+    /// For parts that close out of sight (a drawer slid shut): tracked parts
+    /// that stand carry the end scan's content they swept and the start state
+    /// hid (`track::carried`); a candidate from rest refines 4 poses instead of
+    /// 2, and a refused group's pieces its refined poses too, the motion frames
+    /// choosing among poses the end state cannot tell apart; and a part whose
+    /// end pose hides most of its nodes counts as seen when the frames along
+    /// its path explain the pixels it changes clearly better than rest. Off,
+    /// the default: table_complex 2 -> 3 of 4 parts within the bars (its lower
+    /// drawer found), storage_complex 6 -> 3 or 4 of 6 (docs/training.md).
+    pub carry_content: bool,
     /// Weight of the depth loss log(1 + |D - D_gt|) on the motion frames (as stage
     /// I's `depth_weight`), where the dataset has depth maps; 0 = RGB only (the
     /// default: an Aria RGB camera has no depth).
@@ -194,6 +205,7 @@ impl Default for TrackConfig {
             freeze_translation: 0.01,
             freeze_rotation: 0.02,
             revealed_gaussians: 0,
+            carry_content: false,
             refit_from_start: false,
             depth_weight: 0.0,
             follow_hand: true,
@@ -357,6 +369,15 @@ pub struct NodeTracker {
     /// the run folder keeps it as end_scan.ply).
     #[serde(skip)]
     pub end_scan: Option<EndScan>,
+}
+
+/// End poses (world form) a search from rest passes on: those it was given to
+/// refine besides its own (a refused group's, for its pieces), and those it
+/// refined.
+#[derive(Clone, Debug, Default)]
+struct GroupPoses {
+    inherited: Vec<Rigid>,
+    refined: Vec<Rigid>,
 }
 
 /// The parts found at the end of free tracking, tracked rigidly from then on.
@@ -1608,7 +1629,7 @@ impl NodeTracker {
             if stop() {
                 break;
             }
-            changed += usize::from(self.search_part_end_pose(p, frames, end_views, false));
+            changed += usize::from(self.search_part_end_pose(p, frames, end_views, false, &mut GroupPoses::default()));
         }
         changed
     }
@@ -1696,9 +1717,15 @@ impl NodeTracker {
         frames: &[TrainView],
         end_views: &[TrainView],
         from_rest: bool,
+        group: &mut GroupPoses,
     ) -> bool {
         const VIEWS: usize = 6;
         const SEARCH_REFINED: usize = 2;
+        // From rest the end state alone often ranks a look-alike's place first
+        // (a drawer's front turned onto an open door's): with `carry_content`
+        // more poses are refined, for the motion frames to choose among (below).
+        const SEARCH_REFINED_FROM_REST: usize = 4;
+        let carry = self.config.track.carry_content;
         let step = self.config.track.search_step;
         let Some(parts) = self.articulation.clone() else {
             return false;
@@ -1736,7 +1763,15 @@ impl NodeTracker {
         }
         // A coarse hypothesis is a grid point, the tracked pose a refined one:
         // compare them only after both are refined (a raw grid point never won).
-        let candidates = distinct_poses(&scored, SEARCH_REFINED, 2.0 * step, 0.1 * self.object_size);
+        let count = if from_rest && carry { SEARCH_REFINED_FROM_REST } else { SEARCH_REFINED };
+        let mut candidates = distinct_poses(&scored, count, 2.0 * step, 0.1 * self.object_size);
+        // A refused group's refined motions are tried by its pieces: a piece
+        // of a part moves as the part does, and the group, larger, is placed
+        // by more of the end state than the piece alone.
+        let centre = parts.centres[p];
+        if carry {
+            candidates.extend(group.inherited.iter().map(|m| NodePose::from_rigid(m, centre)));
+        }
         tracing::info!(
             part = p + 1,
             best = scored.first().map(|s| s.0),
@@ -1764,6 +1799,7 @@ impl NodeTracker {
         let tolerance = self.config.track.merge_tolerance;
         // A later candidate must beat the best so far (the tracked pose or an
         // earlier candidate) by the margin.
+        group.refined.extend(refits.iter().flatten().map(|(_, searched, _)| searched.poses[last][p].to_rigid(centre)));
         for (loss, searched, knots) in refits.into_iter().flatten() {
             self.articulation = Some(searched);
             self.knots[last] = knots;
@@ -1796,8 +1832,35 @@ impl NodeTracker {
                     "stage II: a candidate's searched end pose against its nodes at rest, where they differ"
                 );
                 // Nor may it explain the end state worse than its refit from
-                // rest did; a second candidate must beat the first one kept.
-                is_part && if replaced { beats_best } else { loss < best_loss }
+                // rest did; a later candidate must beat the one kept by the
+                // margin. With `carry_content` it replaces the one kept when it
+                // explains the end state clearly better and the motion frames
+                // do not contradict it, or about as well and the frames clearly
+                // prefer its path: the end state cannot tell a part's place
+                // from a look-alike's (table_complex's lower drawer front,
+                // turned onto the open left door's place, 0.6 % better than
+                // slid shut, docs/training.md).
+                is_part
+                    && match best_state.0.as_ref().filter(|_| replaced) {
+                        None => loss < best_loss,
+                        Some(_) if !carry => beats_best,
+                        Some(_) if !beats_best && loss >= best_loss * (1.0 + tolerance) => false,
+                        Some(kept) => {
+                            let (kept_sum, searched_sum) =
+                                self.residuals_along_paths(kept, searched, p, frames).unwrap_or((0.0, 0.0));
+                            let about_as_well = loss < best_loss * (1.0 + tolerance);
+                            tracing::info!(
+                                part = p + 1,
+                                kept_sum,
+                                searched_sum,
+                                beats_best,
+                                about_as_well,
+                                "stage II: a later candidate's path against the kept one's on the motion frames"
+                            );
+                            (beats_best && searched_sum <= kept_sum * (1.0 + tolerance))
+                                || (about_as_well && searched_sum < kept_sum * (1.0 - tolerance))
+                        }
+                    }
             } else {
                 // The tracked pose stands unless a searched one explains the end
                 // state clearly better (storage seed 2: a drawer turned 46 degrees

@@ -12,11 +12,11 @@ use crate::camera::Camera;
 use crate::splat::GaussianSet;
 
 /// Gaussians at this opacity or above are the scans' surface.
-const SURFACE_OPACITY: f32 = 0.5;
+pub(super) const SURFACE_OPACITY: f32 = 0.5;
 /// A part's Gaussian agrees with the end scan when it lies within this share
 /// of the object's size of a surface Gaussian of the scan (the scans' own
 /// error: a median of 6-9 mm on objects of about 1 m, measured).
-const REACH_SHARE: f32 = 0.02;
+pub(super) const REACH_SHARE: f32 = 0.02;
 /// A point is judged only where at least this many end-state views have it in
 /// frame: the scan knows nothing of what the end views never pointed at (a
 /// capture's end state may be seen from a narrow arc), and a part's piece there

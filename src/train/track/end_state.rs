@@ -18,7 +18,7 @@
 
 use glam::{DMat3, DQuat, DVec3, Vec3};
 
-use super::{evenly_spread, pixel_residuals, residuals_where_changed, NodePose, NodeTracker, TrackedParts};
+use super::{evenly_spread, pixel_residuals, residuals_where_changed, GroupPoses, NodePose, NodeTracker, TrackedParts};
 use crate::motion::Rigid;
 use crate::train::views::TrainView;
 
@@ -47,6 +47,10 @@ pub(super) const JOIN_SHARE: f32 = 0.25;
 /// A part found on the end state also looks right where it moved when its
 /// residual there is below this share of its nodes' residual at rest.
 const AT_REST_SHARE: f32 = 0.5;
+/// A part most of whose nodes its end pose hides (a drawer slid shut) still
+/// shows its own content where it moved when the motion frames, along its
+/// path, explain the pixels it changes at most this share of what rest does.
+const HIDDEN_PATH_SHARE: f32 = 0.8;
 /// A turning part's hinge lies on the part: its axis passes within this share of
 /// the object's size of the part's start-state Gaussians (of the nearest
 /// `HINGE_QUANTILE` of them: a few stray Gaussians are no hinge) ...
@@ -110,7 +114,8 @@ impl NodeTracker {
                 break;
             };
             nodes.iter().for_each(|&k| tried[k] = true);
-            if let Some(given_back) = self.try_candidate(&nodes, threshold, frames, end_views, &views) {
+            let mut group = GroupPoses::default();
+            if let Some(given_back) = self.try_candidate(&nodes, threshold, frames, end_views, &views, &mut group) {
                 // Pieces of other parts, to be found on their own.
                 given_back.iter().for_each(|&k| tried[k] = false);
                 added += 1;
@@ -118,8 +123,12 @@ impl NodeTracker {
             }
             // Refused whole: parts side by side (two doors 6 mm apart, a row of
             // drawers) are one group of the node graph, which no one pose explains.
-            for piece in self.split_group(&nodes, end_views) {
-                if let Some(given_back) = self.try_candidate(&piece, threshold, frames, end_views, &views) {
+            // With `track.carry_content` its pieces refine the group's poses too.
+            for piece_nodes in self.split_group(&nodes, end_views) {
+                let mut piece = GroupPoses { inherited: group.refined.clone(), refined: Vec::new() };
+                if let Some(given_back) =
+                    self.try_candidate(&piece_nodes, threshold, frames, end_views, &views, &mut piece)
+                {
                     given_back.iter().for_each(|&k| tried[k] = false);
                     added += 1;
                 }
@@ -182,6 +191,7 @@ impl NodeTracker {
         frames: &[TrainView],
         end_views: &[TrainView],
         views: &[&TrainView],
+        group: &mut GroupPoses,
     ) -> Option<Vec<usize>> {
         let last = self.knots.len() - 1;
         let before = (self.articulation.clone().expect("parts set by the caller"), self.knots[last].clone());
@@ -195,7 +205,7 @@ impl NodeTracker {
             let residual = self.node_residuals(self.articulation.as_ref().expect("set"), p + 1, views, true);
             seen_median(nodes, &residual).1
         };
-        if !self.search_part_end_pose(p, frames, end_views, true) {
+        if !self.search_part_end_pose(p, frames, end_views, true, group) {
             restore(self);
             return None;
         }
@@ -231,7 +241,7 @@ impl NodeTracker {
             parts.poses[last][p] = NodePose::from_rigid(&motion, parts.centres[p]);
             self.set_articulation(parts);
         }
-        if !self.looks_right_where_moved(p, kept.len(), threshold, at_rest, views) {
+        if !self.looks_right_where_moved(p, kept.len(), threshold, at_rest, views, frames) {
             restore(self);
             return None;
         }
@@ -508,7 +518,10 @@ impl NodeTracker {
 
     /// Whether part `p` (found from a group of `candidate_nodes` nodes whose
     /// residual was above `threshold`) shows its own content where its end pose
-    /// put it: at least half its nodes seen there, at a median residual (relit)
+    /// put it: at least half its nodes seen there (or, with `carry_content`, when
+    /// its end pose hides most of them, the motion `frames` along its path
+    /// explaining the pixels it changes clearly better than rest: a drawer seen
+    /// sliding shut), at a median residual (relit)
     /// below the threshold, a hinge on the part, and, with an end scan, its surface
     /// nearer the scan's there than at rest. A pose that lowers the loss by moving
     /// content the start state had wrong (the unseen inside of a closed body,
@@ -522,12 +535,26 @@ impl NodeTracker {
         threshold: f32,
         at_rest: f32,
         views: &[&TrainView],
+        frames: &[TrainView],
     ) -> bool {
         let (seen, median) = self.residual_where_moved(p, views);
         let parts = self.articulation.as_ref().expect("the part judged");
         let joint = parts.end_joint(p);
         let scan = self.end_scan_agreement(parts, p, &parts.nodes_labelled(p + 1));
-        let passes = 2 * seen >= candidate_nodes
+        // Fewer than half seen: with `carry_content`, the frames must have watched it go out of sight.
+        let hidden_judged_by_frames = self.config.track.carry_content && 2 * seen < candidate_nodes;
+        let path_against_rest = hidden_judged_by_frames.then(|| {
+            let mut held = parts.clone();
+            held.poses.iter_mut().for_each(|k| k[p] = NodePose::IDENTITY);
+            self.residuals_along_paths(&held, parts, p, frames)
+        });
+        let seen_enough = match path_against_rest {
+            None => 2 * seen >= candidate_nodes,
+            // Strictly: frames in which its path changes no pixel saw nothing of it.
+            Some(Some((rest_sum, path_sum))) => path_sum < HIDDEN_PATH_SHARE * rest_sum,
+            Some(None) => false,
+        };
+        let passes = seen_enough
             && (median < threshold || median < AT_REST_SHARE * at_rest)
             && self.axis_on_part(p, &joint)
             && !scan.is_some_and(|a| a.contradicts_end_pose());
@@ -538,6 +565,7 @@ impl NodeTracker {
             threshold,
             at_rest,
             scan = ?scan,
+            path_against_rest = ?path_against_rest,
             passes,
             kind = ?joint.kind,
             axis = ?joint.axis.as_vec3().to_array(),
@@ -716,17 +744,9 @@ impl NodeTracker {
         p: usize,
         frames: &[TrainView],
     ) -> bool {
-        const VIEWS: usize = 8;
-        let moving: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t > 0.0)).collect();
-        let views = evenly_spread(&moving, VIEWS);
-        if views.is_empty() {
+        let Some((tracked_sum, searched_sum)) = self.residuals_along_paths(tracked, searched, p, frames) else {
             return true;
-        }
-        let cap = self.config.track.validation_residual_cap;
-        let targets = self.targets(&views);
-        let along_tracked = self.best_screw_renders(tracked, p, &views, &targets);
-        let along_searched = self.best_screw_renders(searched, p, &views, &targets);
-        let (tracked_sum, searched_sum) = residuals_where_changed(&along_tracked, &along_searched, &targets, cap);
+        };
         let agrees = searched_sum <= tracked_sum * (1.0 + self.config.track.merge_tolerance);
         tracing::info!(
             part = p + 1,
@@ -736,6 +756,30 @@ impl NodeTracker {
             "stage II: a searched end pose against the motion frames"
         );
         agrees
+    }
+
+    /// The motion frames' residuals (8 of them, evenly spread) on the pixels
+    /// where part `p` moved along its screw path in `first` and in `second`
+    /// differ, each frame at the fraction of each screw that explains it best:
+    /// (first's, second's). None without motion frames.
+    pub(super) fn residuals_along_paths(
+        &self,
+        first: &TrackedParts,
+        second: &TrackedParts,
+        p: usize,
+        frames: &[TrainView],
+    ) -> Option<(f32, f32)> {
+        const VIEWS: usize = 8;
+        let moving: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t > 0.0)).collect();
+        let views = evenly_spread(&moving, VIEWS);
+        if views.is_empty() {
+            return None;
+        }
+        let cap = self.config.track.validation_residual_cap;
+        let targets = self.targets(&views);
+        let along_first = self.best_screw_renders(first, p, &views, &targets);
+        let along_second = self.best_screw_renders(second, p, &views, &targets);
+        Some(residuals_where_changed(&along_first, &along_second, &targets, cap))
     }
 
     /// Each of `views` rendered with part `p` (alone; the other parts on their
@@ -1342,6 +1386,68 @@ mod tests {
         assert!(!tracker.path_agrees(&open, &wrong, 0, &frames), "the turn the other way contradicts the frames");
         assert!(tracker.path_agrees(&half, &open, 0, &frames), "the whole turn agrees with the frames");
         assert!(tracker.path_agrees(&open, &wrong, 0, &[]), "without frames, any pose agrees");
+    }
+
+    #[test]
+    fn a_drawer_seen_sliding_shut_looks_right_though_its_sides_are_hidden() {
+        // An open-fronted box (y up, its opening facing -z) and a drawer (front,
+        // sides, bottom) 0.25 out of it, which slides shut along +z: at the end
+        // only its front is in sight. Judged on the end state, most of its nodes
+        // unseen; the motion frames watched it go in.
+        use super::super::carried::tests::face;
+        let (step, rng) = (0.03, &mut ChaCha8Rng::seed_from_u64(12));
+        let mut gs = GaussianSet::new(0);
+        let (x, y, z) = (Vec3::X, Vec3::Y, Vec3::Z);
+        let corner = Vec3::new(-0.3, -0.15, 0.0);
+        face(&mut gs, corner + z * 0.4, x * 0.6, y * 0.3, step, rng); // back
+        face(&mut gs, corner, x * 0.6, z * 0.4, step, rng); // bottom
+        face(&mut gs, corner + y * 0.3, x * 0.6, z * 0.4, step, rng); // top
+        face(&mut gs, corner, y * 0.3, z * 0.4, step, rng); // left
+        face(&mut gs, corner + x * 0.6, y * 0.3, z * 0.4, step, rng); // right
+        let body = gs.len();
+        let front = Vec3::new(-0.27, -0.12, -0.25);
+        face(&mut gs, front, x * 0.54, y * 0.24, step, rng);
+        face(&mut gs, front + Vec3::new(0.03, 0.0, 0.0), y * 0.2, z * 0.3, step, rng); // side walls
+        face(&mut gs, front + Vec3::new(0.51, 0.0, 0.0), y * 0.2, z * 0.3, step, rng);
+        face(&mut gs, front + Vec3::new(0.03, 0.01, 0.0), x * 0.48, z * 0.3, step, rng); // bottom
+        let mut config = DynamicConfig::cpu();
+        config.track.nodes = gs.len();
+        config.track.gaussians_per_node = 1;
+        config.track.knots = 3;
+        config.track.carry_content = true;
+        config.eval_background = [0.0; 3];
+        let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
+        let mut node_part = vec![0; tracker.node_centres.len()];
+        (body..gs.len()).for_each(|i| node_part[tracker.binding[i] as usize] = 1);
+        let drawer_nodes = node_part.iter().filter(|&&l| l == 1).count();
+        let shut = |f: f32| NodePose { rotation: Quat::IDENTITY, translation: z * 0.25 * f };
+        let parts = parts_at(&tracker, &node_part, &[shut(1.0)]);
+        let n = tracker.node_centres.len();
+        tracker.knots = parts.poses.iter().map(|p| parts.node_poses(&tracker.node_centres, p)).collect();
+        tracker.gains = vec![vec![0.0; n]; 3];
+        let at = |f: f32| tracker.deformed(&parts.node_poses(&tracker.node_centres, &[shut(f)]), &vec![0.0; n]);
+        let end_views = views_of(&at(1.0), 1.0, 16);
+        let views: Vec<&TrainView> = end_views.iter().collect();
+        let sliding: Vec<TrainView> = [0.25, 0.5, 0.75].into_iter().flat_map(|f| views_of(&at(f), f, 3)).collect();
+        // Frames in which the drawer never moved (it vanished at the end only).
+        let still: Vec<TrainView> = [0.25, 0.5, 0.75].into_iter().flat_map(|f| views_of(&at(0.0), f, 3)).collect();
+        tracker.articulation = Some(parts);
+        let (seen, median) = tracker.residual_where_moved(0, &views);
+        assert!(2 * seen < drawer_nodes, "the premise: most of the drawer hidden ({seen} of {drawer_nodes} seen)");
+        assert!(median < 0.04, "what is seen looks right ({median})");
+        assert!(
+            tracker.looks_right_where_moved(0, drawer_nodes, 0.04, 0.25, &views, &sliding),
+            "the frames saw it slide shut"
+        );
+        assert!(
+            !tracker.looks_right_where_moved(0, drawer_nodes, 0.04, 0.25, &views, &still),
+            "frames in which it never moved do not vouch for its hidden nodes"
+        );
+        tracker.config.track.carry_content = false;
+        assert!(
+            !tracker.looks_right_where_moved(0, drawer_nodes, 0.04, 0.25, &views, &sliding),
+            "by default half its nodes must be seen"
+        );
     }
 
     #[test]
