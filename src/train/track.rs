@@ -159,7 +159,7 @@ pub struct TrackConfig {
     /// end pose hides most of its nodes counts as seen when the frames along
     /// its path explain the pixels it changes clearly better than rest. Off,
     /// the default: table_complex 2 -> 3 of 4 parts within the bars (its lower
-    /// drawer found), storage_complex 6 -> 3 or 4 of 6 (docs/training.md).
+    /// drawer found), storage_complex 6 -> 4 of 6 (docs/training.md).
     pub carry_content: bool,
     /// Weight of the depth loss log(1 + |D - D_gt|) on the motion frames (as stage
     /// I's `depth_weight`), where the dataset has depth maps; 0 = RGB only (the
@@ -371,9 +371,9 @@ pub struct NodeTracker {
     pub end_scan: Option<EndScan>,
 }
 
-/// End poses (world form) a search from rest passes on: those it was given to
-/// refine besides its own (a refused group's, for its pieces), and those it
-/// refined.
+/// End poses (world form) a search from rest passes on, with
+/// `track.carry_content`: those it was given to refine besides its own (a
+/// refused group's, for its pieces), and those it refined.
 #[derive(Clone, Debug, Default)]
 struct GroupPoses {
     inherited: Vec<Rigid>,
@@ -1796,10 +1796,14 @@ impl NodeTracker {
                 Some((loss, trial.articulation.expect("parts"), trial.knots.swap_remove(last)))
             })
             .collect();
+        if carry {
+            group
+                .refined
+                .extend(refits.iter().flatten().map(|(_, searched, _)| searched.poses[last][p].to_rigid(centre)));
+        }
         let tolerance = self.config.track.merge_tolerance;
         // A later candidate must beat the best so far (the tracked pose or an
         // earlier candidate) by the margin.
-        group.refined.extend(refits.iter().flatten().map(|(_, searched, _)| searched.poses[last][p].to_rigid(centre)));
         for (loss, searched, knots) in refits.into_iter().flatten() {
             self.articulation = Some(searched);
             self.knots[last] = knots;
