@@ -521,9 +521,9 @@ impl NodeTracker {
     /// put it: at least half its nodes seen there (or, with `carry_content`, when
     /// its end pose hides most of them, the motion `frames` along its path
     /// explaining the pixels it changes clearly better than rest: a drawer seen
-    /// sliding shut), at a median residual (relit)
-    /// below the threshold, a hinge on the part, and, with an end scan, its surface
-    /// nearer the scan's there than at rest. A pose that lowers the loss by moving
+    /// sliding shut), at a median residual (relit) below the threshold, a hinge
+    /// on the part, and, with an end scan, its surface nearer the scan's there
+    /// than at rest. A pose that lowers the loss by moving
     /// content the start state had wrong (the unseen inside of a closed body,
     /// revealed by the motion) out of sight, or onto other wrong content, does not
     /// pass; nor does a plain-paint piece moved where nothing is, which costs no
