@@ -3,10 +3,12 @@
 //! scan saw, so an opened drawer's inside is explained by nothing of its own,
 //! and a look-alike part moved onto it (a lower drawer slid up into the open
 //! upper one) explains it better than that part's true, hidden, end pose
-//! (docs/training.md, "Content a part carries"). The end scan has seen it: its
+//! (docs/training.md, "The lower drawer slid shut"). The end scan has seen it: its
 //! Gaussians where a part swept, that nothing in the twin explains and that
 //! the part's own path brings out of the start state's hidden volume, are
-//! bound to that part, at rest where they were hidden.
+//! bound to that part, at rest where they were hidden. Only with
+//! `track.carry_content` (off by default: it finds that drawer and costs
+//! storage_complex two doors).
 
 use glam::{Quat, Vec3};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
