@@ -31,9 +31,9 @@ impl NodeTracker {
     /// Gaussian of the base and of the part at its end pose (not of the other
     /// parts: a look-alike's wrong end pose may cover them), (b) the part's
     /// Gaussians came within that reach of on their path from rest to the end,
-    /// and (c) the part's end
-    /// pose, undone, puts where every camera of the start state's scan
-    /// (`start_cameras`) that has them in frame sees the start surface in front.
+    /// and (c) the part's end pose, undone, puts where every camera of the start
+    /// state's scan (`start_cameras`) that has them in frame sees the start
+    /// surface in front.
     /// Each is bound to the part's node nearest it at the end, moved back to
     /// rest by that node's end pose. Returns how many were bound.
     pub fn carry_swept_content(&mut self, scan: &GaussianSet, start_cameras: &[Camera]) -> usize {
@@ -71,7 +71,7 @@ impl NodeTracker {
                 continue;
             }
             let own = surface_tree(p);
-            let mut swept: Vec<bool> = unexplained.iter().map(|_| false).collect();
+            let mut swept = vec![false; unexplained.len()];
             for k in 1..=samples {
                 let t = k as f32 / samples as f32;
                 let moved = self.deformed_rows(&rows, &self.poses_at(t), &self.gains_at(t));
@@ -225,6 +225,7 @@ pub(super) mod tests {
         // rest (0.05 behind it), the base's face and the point beside are not.
         assert_eq!(bound, 3, "bound {bound}");
         assert_eq!(tracker.gaussians.len(), before + 3);
+        let end = tracker.deformed(&tracker.knots[10], &tracker.gains[10]);
         for (i, p) in inside.iter().enumerate() {
             let row = before + i;
             let node = tracker.binding[row] as usize;
@@ -232,7 +233,6 @@ pub(super) mod tests {
             let at_rest = tracker.gaussians.mean(row);
             assert!(at_rest.distance(*p + Vec3::Y * 0.2) < 1e-4, "at rest {at_rest}, expected {}", *p + Vec3::Y * 0.2);
             // Deformed to the end, it is where the end scan saw it.
-            let end = tracker.deformed(&tracker.knots[10], &tracker.gains[10]);
             assert!(end.mean(row).distance(*p) < 1e-4);
         }
     }
