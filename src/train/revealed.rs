@@ -52,7 +52,7 @@ impl RevealedContent {
             let candidates: Vec<Vec3> = (0..count * CANDIDATES_PER_GAUSSIAN)
                 .map(|_| lo + (hi - lo) * Vec3::new(rng.random(), rng.random(), rng.random()))
                 .collect();
-            let kept: Vec<Vec3> = hidden_in_start_state(start, scan, &candidates, HIDDEN_MARGIN * size)
+            let kept: Vec<Vec3> = hidden_behind_surface(start, scan, &candidates, HIDDEN_MARGIN * size)
                 .into_iter()
                 .zip(&candidates)
                 .filter(|(h, _)| *h)
@@ -110,14 +110,14 @@ impl RevealedContent {
 /// Random stream of the candidate points.
 const STREAM_REVEALED: u64 = 23;
 
-/// Per point of `points`: whether some camera of `scan` has it in frame and every
-/// one that does sees the surface of `start` at least `margin` in front of it
-/// (the start state could not have shown it).
-pub fn hidden_in_start_state(start: &GaussianSet, scan: &[Camera], points: &[Vec3], margin: f32) -> Vec<bool> {
+/// Per point of `points`: whether some camera of `cameras` has it in frame and
+/// every one that does sees the surface of `set` at least `margin` in front of
+/// it (a scan of `set` from those cameras could not have shown it).
+pub fn hidden_behind_surface(set: &GaussianSet, cameras: &[Camera], points: &[Vec3], margin: f32) -> Vec<bool> {
     let mut hidden = vec![true; points.len()];
     let mut seen = vec![false; points.len()];
-    for camera in scan {
-        let r = render(start, camera, &RenderOptions::uniform(Vec3::ZERO));
+    for camera in cameras {
+        let r = render(set, camera, &RenderOptions::uniform(Vec3::ZERO));
         for (k, p) in points.iter().enumerate() {
             let Some((pixel, z)) = camera.pixel_of(*p) else { continue };
             let alpha = r.image.alpha[pixel];

@@ -36,6 +36,7 @@ mod carried;
 mod contact;
 mod end_scan;
 mod end_state;
+mod grown;
 use end_state::JOIN_SHARE;
 
 pub use contact::HandContact;

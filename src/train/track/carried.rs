@@ -17,7 +17,7 @@ use super::end_scan::{REACH_SHARE, SURFACE_OPACITY};
 use super::NodeTracker;
 use crate::camera::Camera;
 use crate::splat::{GaussianSet, ParamGroup};
-use crate::train::revealed::{hidden_in_start_state, HIDDEN_MARGIN};
+use crate::train::revealed::{hidden_behind_surface, HIDDEN_MARGIN};
 
 /// Poses sampled along a part's path per fitted segment: the path of a point
 /// between two samples stays within the reach on the benchmark's fastest parts
@@ -106,7 +106,7 @@ impl NodeTracker {
                 pose.rotation.inverse() * (scan.mean(i) - c - pose.translation) + c
             })
             .collect();
-        let hidden = hidden_in_start_state(&self.gaussians, start_cameras, &at_rest, HIDDEN_MARGIN * self.object_size);
+        let hidden = hidden_behind_surface(&self.gaussians, start_cameras, &at_rest, HIDDEN_MARGIN * self.object_size);
         let rest_width = self.gaussians.width(ParamGroup::ShRest);
         let scan_rest_width = scan.width(ParamGroup::ShRest);
         let mut per_part = vec![0usize; parts.centres.len()];

@@ -64,18 +64,22 @@ impl EndScan {
     }
 
     /// Whether at least `MIN_VIEWS` of the scan's views have `p` in frame.
-    fn in_view(&self, p: Vec3) -> bool {
+    pub(super) fn in_view(&self, p: Vec3) -> bool {
         self.cameras.iter().filter(|c| c.pixel_of(p).is_some()).take(MIN_VIEWS).count() >= MIN_VIEWS
+    }
+
+    /// Whether `p` lies within reach of the scan's surface.
+    pub(super) fn is_near(&self, p: Vec3) -> bool {
+        self.tree.nearest_one::<SquaredEuclidean>(&p.to_array()).distance <= self.reach * self.reach
     }
 
     /// The share of those of `points` the views see that lie within reach of the
     /// surface; None when the views see none of them.
     fn share_near(&self, points: impl Iterator<Item = Vec3>) -> Option<f32> {
-        let reach2 = self.reach * self.reach;
         let (mut seen, mut near) = (0usize, 0usize);
         for p in points.filter(|&p| self.in_view(p)) {
             seen += 1;
-            near += usize::from(self.tree.nearest_one::<SquaredEuclidean>(&p.to_array()).distance <= reach2);
+            near += usize::from(self.is_near(p));
         }
         (seen > 0).then(|| near as f32 / seen as f32)
     }

@@ -891,7 +891,7 @@ fn screw_fraction(m: &Rigid, f: f64) -> Rigid {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use glam::Quat;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -916,18 +916,18 @@ mod tests {
     /// A door of `panels`: the plate's Gaussians whose node lies in x in (from,
     /// to], turning by `angle` about the y axis through (hinge, 0, 0).
     #[derive(Clone, Copy)]
-    struct Door {
-        from: f32,
-        to: f32,
-        hinge: f32,
-        angle: f32,
+    pub(crate) struct Door {
+        pub(crate) from: f32,
+        pub(crate) to: f32,
+        pub(crate) hinge: f32,
+        pub(crate) angle: f32,
     }
 
     /// A plate from x = `x0` to `x1` (`count` Gaussians, textured at random) in
     /// z = 0, cut into a base and `doors`, no part tracked, bound to `nodes`
     /// nodes; `turn` of each door's turn done. Returns the tracker (two
     /// segments, everything at rest), each door's Gaussians and the truth at `turn`.
-    fn panels(
+    pub(crate) fn panels(
         x0: f32,
         x1: f32,
         count: usize,
@@ -969,7 +969,7 @@ mod tests {
         (tracker, members, truth)
     }
 
-    fn views_of(set: &GaussianSet, time: f32, count: usize) -> Vec<TrainView> {
+    pub(crate) fn views_of(set: &GaussianSet, time: f32, count: usize) -> Vec<TrainView> {
         let k = Intrinsics { width: 64, height: 64, fx: 58.0, fy: 58.0, cx: 32.0, cy: 32.0 };
         (0..count)
             .map(|i| {
@@ -1175,7 +1175,7 @@ mod tests {
 
     /// The parts `node_part` labels, each at `end[p]` (a pose about its centre)
     /// at the last of three knots, half way along the screw at the middle one.
-    fn parts_at(tracker: &NodeTracker, node_part: &[usize], end: &[NodePose]) -> TrackedParts {
+    pub(crate) fn parts_at(tracker: &NodeTracker, node_part: &[usize], end: &[NodePose]) -> TrackedParts {
         let centres: Vec<Vec3> = (1..=end.len()).map(|p| tracker.labelled_centroid(node_part, p)).collect();
         let halfway: Vec<NodePose> = end
             .iter()
@@ -1187,7 +1187,7 @@ mod tests {
     }
 
     /// A turn by `angle` about the y axis through `pivot`, as a pose about `c`.
-    fn turn_about(angle: f32, pivot: Vec3, c: Vec3) -> NodePose {
+    pub(crate) fn turn_about(angle: f32, pivot: Vec3, c: Vec3) -> NodePose {
         let rotation = Quat::from_rotation_y(angle);
         NodePose { rotation, translation: rotation * (c - pivot) + pivot - c }
     }
