@@ -401,11 +401,11 @@ fn run_node_track(
     if tracker.clean_parts(&frames, &end_views) > 0 {
         tracker.refit_end_poses(&end_views);
     }
-    // The Gaussians the parts left in the base beside them (at a node that
-    // straddles a door's edge and the body), given to them on the end scan's evidence.
+    // Gaussians at nodes that straddle a part's edge and the body, each given
+    // to the side the end scan shows it went with.
     if let Some(scan) = &end_scan {
         let cameras: Vec<_> = end_views.iter().map(|v| v.camera).collect();
-        tracker.give_parts_what_moved_with_them(scan, &cameras);
+        tracker.settle_gaussians_on_end_scan(scan, &cameras);
     }
     let (parts, labels) = tracker.analyse();
     articulated(control.viz, &parts, &mut progress);
