@@ -404,8 +404,7 @@ fn run_node_track(
     // Gaussians at nodes that straddle a part's edge and the body, each given
     // to the side the end scan shows it went with.
     if let Some(scan) = &end_scan {
-        let cameras: Vec<_> = end_views.iter().map(|v| v.camera).collect();
-        tracker.settle_gaussians_on_end_scan(scan, &cameras);
+        tracker.settle_gaussians_on_end_scan(scan);
     }
     let (parts, labels) = tracker.analyse();
     articulated(control.viz, &parts, &mut progress);

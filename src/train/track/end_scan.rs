@@ -29,7 +29,7 @@ pub struct EndScan {
     tree: ImmutableKdTree<f32, 3>,
     /// The distance within which a point agrees with the surface (world units).
     reach: f32,
-    cameras: Vec<Camera>,
+    pub(super) cameras: Vec<Camera>,
 }
 
 /// How start-state Gaussians moved by a part's end pose agree with the end scan:

@@ -13,7 +13,6 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use super::end_scan::REACH_SHARE;
 use super::NodeTracker;
-use crate::camera::Camera;
 use crate::splat::GaussianSet;
 use crate::train::revealed::{hidden_behind_surface, HIDDEN_MARGIN};
 
@@ -26,9 +25,9 @@ const MAX_ROUNDS: usize = 64;
 
 impl NodeTracker {
     /// Moves Gaussians between the base and the parts on the end scan's
-    /// evidence (`end_scan`, of `scan`, trained on views from `cameras`). Each
+    /// evidence (`end_scan`, of `scan`, and the views it was trained on). Each
     /// Gaussian's place at the end (at rest for the base's, at its part's end
-    /// pose for a part's) is seen empty when it is in view of the cameras, off
+    /// pose for a part's) is seen empty when it is in view of those views, off
     /// the scan's surface, and one of them sees it with no surface of `scan` in
     /// front. A part's Gaussian whose place is seen empty and that lies on the
     /// scan's surface at rest goes to the base; then a base Gaussian whose
@@ -36,11 +35,11 @@ impl NodeTracker {
     /// surface goes to that part. Either only within `NEIGHBOURHOOD_REACHES`
     /// end-scan reaches of the Gaussians it goes to, in rounds, bound to their
     /// node nearest it. Returns (given to the parts, taken back by the base).
-    pub fn settle_gaussians_on_end_scan(&mut self, scan: &GaussianSet, cameras: &[Camera]) -> (usize, usize) {
+    pub fn settle_gaussians_on_end_scan(&mut self, scan: &GaussianSet) -> (usize, usize) {
         let (Some(parts), Some(end_scan)) = (self.articulation.as_ref(), self.end_scan.as_ref()) else {
             return (0, 0);
         };
-        if parts.centres.is_empty() || cameras.is_empty() {
+        if parts.centres.is_empty() {
             return (0, 0);
         }
         let last = parts.poses.len() - 1;
@@ -49,7 +48,7 @@ impl NodeTracker {
         let moved_by = |p: usize, x: Vec3| parts.poses[last][p].apply(parts.centres[p], x);
         let end_places: Vec<Vec3> =
             (0..means.len()).map(|i| if label[i] == 0 { means[i] } else { moved_by(label[i] - 1, means[i]) }).collect();
-        let hidden = hidden_behind_surface(scan, cameras, &end_places, HIDDEN_MARGIN * self.object_size);
+        let hidden = hidden_behind_surface(scan, &end_scan.cameras, &end_places, HIDDEN_MARGIN * self.object_size);
         let seen_empty: Vec<bool> = (0..means.len())
             .map(|i| !hidden[i] && end_scan.in_view(end_places[i]) && !end_scan.is_near(end_places[i]))
             .collect();
@@ -125,14 +124,13 @@ mod tests {
 
     use super::super::end_state::tests::{panels, parts_at, turn_about, views_of, Door};
     use super::super::{EndScan, NodeTracker};
-    use crate::camera::Camera;
     use crate::splat::GaussianSet;
 
     /// A plate from x = -0.5 to 0.5 whose stretch x in (0, `door_to`] truly
     /// turned a quarter about the y axis through x = 0, scanned at the end
     /// from 16 views; the tracker holds as part 1 the nodes with x in (0, 0.3],
-    /// at that end pose. Returns the tracker, the end scan (the truth) and its cameras.
-    fn door_held_up_to_x_0_3(door_to: f32) -> (NodeTracker, GaussianSet, Vec<crate::camera::Camera>) {
+    /// at that end pose. Returns the tracker and the end scan (the truth).
+    fn door_held_up_to_x_0_3(door_to: f32) -> (NodeTracker, GaussianSet) {
         let door = Door { from: 0.0, to: door_to, hinge: 0.0, angle: -FRAC_PI_2 };
         let (mut tracker, _, end) = panels(-0.5, 0.5, 1200, 64, &[door], 1.0);
         let cameras: Vec<_> = views_of(&end, 1.0, 16).iter().map(|v| v.camera).collect();
@@ -141,7 +139,7 @@ mod tests {
         let c = tracker.labelled_centroid(&held, 1);
         let parts = parts_at(&tracker, &held, &[turn_about(-FRAC_PI_2, Vec3::ZERO, c)]);
         tracker.set_articulation(parts);
-        (tracker, end, cameras)
+        (tracker, end)
     }
 
     /// Each Gaussian's part (0 = base) by its node.
@@ -152,13 +150,13 @@ mod tests {
 
     #[test]
     fn a_door_held_short_of_its_edge_gets_the_edge_and_the_base_stays() {
-        let (mut tracker, end, cameras) = door_held_up_to_x_0_3(0.5);
+        let (mut tracker, end) = door_held_up_to_x_0_3(0.5);
         let before = labels(&tracker);
         // What truly moved: the door's Gaussians (by their nodes, as `panels` cuts it).
         let moved: Vec<bool> = (0..end.len()).map(|i| end.mean(i).distance(tracker.gaussians.mean(i)) > 1e-6).collect();
         let strip: Vec<usize> = (0..moved.len()).filter(|&i| before[i] == 0 && moved[i]).collect();
         assert!(strip.len() >= 100, "the door's Gaussians left in the base: {}", strip.len());
-        let (given, taken) = tracker.settle_gaussians_on_end_scan(&end, &cameras);
+        let (given, taken) = tracker.settle_gaussians_on_end_scan(&end);
         assert_eq!(taken, 0, "the part holds none of the base's");
         let after = labels(&tracker);
         let joined = strip.iter().filter(|&&i| after[i] == 1).count();
@@ -172,9 +170,9 @@ mod tests {
     /// (0, 0.5], hinged at its far edge, truly turned a quarter, scanned at the
     /// end from 16 views; the tracker's part is the nodes whose centre lies
     /// beyond x = `part_from`, at the door's end pose. Returns the tracker, the
-    /// end scan (the truth), its cameras, which Gaussians are the door's, and
-    /// the end scan's reach (within it of the cut, the scan cannot tell).
-    fn door_cut_between_nodes(part_from: f32) -> (NodeTracker, GaussianSet, Vec<Camera>, Vec<bool>, f32) {
+    /// end scan (the truth), which Gaussians are the door's, and the end scan's
+    /// reach (within it of the cut, the scan cannot tell).
+    fn door_cut_between_nodes(part_from: f32) -> (NodeTracker, GaussianSet, Vec<bool>, f32) {
         let (mut tracker, _, mut end) = panels(-0.5, 0.5, 1200, 64, &[], 1.0);
         let hinge = Vec3::new(0.5, 0.0, 0.0);
         let turn = Quat::from_rotation_y(FRAC_PI_2);
@@ -183,24 +181,24 @@ mod tests {
             let m = turn * (end.mean(i) - hinge) + hinge;
             end.means[3 * i..3 * i + 3].copy_from_slice(&m.to_array());
         }
-        let cameras: Vec<Camera> = views_of(&end, 1.0, 16).iter().map(|v| v.camera).collect();
+        let cameras: Vec<_> = views_of(&end, 1.0, 16).iter().map(|v| v.camera).collect();
         tracker.end_scan = EndScan::new(&end, tracker.object_size, &cameras);
         let held: Vec<usize> = tracker.node_centres.iter().map(|c| usize::from(c.x > part_from)).collect();
         let c = tracker.labelled_centroid(&held, 1);
         tracker.set_articulation(parts_at(&tracker, &held, &[turn_about(FRAC_PI_2, hinge, c)]));
         let reach = super::REACH_SHARE * tracker.object_size;
-        (tracker, end, cameras, door, reach)
+        (tracker, end, door, reach)
     }
 
     #[test]
     fn a_doors_free_edge_at_the_bodys_nodes_goes_with_the_door() {
         // The part stops short of the cut: the nodes there, the body's, hold the door's free edge (the fridge's).
-        let (mut tracker, end, cameras, door, reach) = door_cut_between_nodes(0.08);
+        let (mut tracker, end, door, reach) = door_cut_between_nodes(0.08);
         let before = labels(&tracker);
         let x: Vec<f32> = (0..door.len()).map(|i| tracker.gaussians.mean(i).x).collect();
         let edge: Vec<usize> = (0..door.len()).filter(|&i| door[i] && before[i] == 0 && x[i] > reach).collect();
         assert!(edge.len() >= 30, "the door's Gaussians at the body's nodes: {}", edge.len());
-        assert_eq!(tracker.settle_gaussians_on_end_scan(&end, &cameras).1, 0, "none taken back");
+        assert_eq!(tracker.settle_gaussians_on_end_scan(&end).1, 0, "none taken back");
         let after = labels(&tracker);
         assert!(edge.iter().all(|&i| after[i] == 1), "the door's edge given to the door");
         assert!((0..door.len()).filter(|&i| !door[i]).all(|i| after[i] == 0), "the body's Gaussians stay");
@@ -209,12 +207,12 @@ mod tests {
     #[test]
     fn a_strip_of_the_body_a_door_took_goes_back_to_the_body() {
         // The part reaches past the cut: its nodes there hold a strip of the body.
-        let (mut tracker, end, cameras, door, reach) = door_cut_between_nodes(-0.08);
+        let (mut tracker, end, door, reach) = door_cut_between_nodes(-0.08);
         let before = labels(&tracker);
         let x: Vec<f32> = (0..door.len()).map(|i| tracker.gaussians.mean(i).x).collect();
         let strip: Vec<usize> = (0..door.len()).filter(|&i| !door[i] && before[i] == 1 && x[i] < -reach).collect();
         assert!(strip.len() >= 30, "the body's Gaussians at the door's nodes: {}", strip.len());
-        assert_eq!(tracker.settle_gaussians_on_end_scan(&end, &cameras).0, 0, "none given");
+        assert_eq!(tracker.settle_gaussians_on_end_scan(&end).0, 0, "none given");
         let after = labels(&tracker);
         assert!(strip.iter().all(|&i| after[i] == 0), "the body's strip given back to the body");
         assert!((0..door.len()).filter(|&i| door[i]).all(|i| after[i] == 1), "the door's Gaussians stay");
@@ -224,7 +222,7 @@ mod tests {
     fn the_plate_beyond_a_door_that_ends_where_the_part_does_stays_in_the_base() {
         // The door is only x in (0, 0.3]: the plate beyond it never moved, and
         // the end state shows it in place.
-        let (mut tracker, end, cameras) = door_held_up_to_x_0_3(0.3);
-        assert_eq!(tracker.settle_gaussians_on_end_scan(&end, &cameras), (0, 0));
+        let (mut tracker, end) = door_held_up_to_x_0_3(0.3);
+        assert_eq!(tracker.settle_gaussians_on_end_scan(&end), (0, 0));
     }
 }
