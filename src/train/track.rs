@@ -154,13 +154,12 @@ pub struct TrackConfig {
     pub revealed_gaussians: usize,
     /// For parts that close out of sight (a drawer slid shut): tracked parts
     /// that stand carry the end scan's content they swept and the start state
-    /// hid (`track::carried`); a candidate from rest refines 4 poses instead of
-    /// 2, and a refused group's pieces its refined poses too, the motion frames
-    /// choosing among poses the end state cannot tell apart; and a part whose
-    /// end pose hides most of its nodes counts as seen when the frames along
-    /// its path explain the pixels it changes clearly better than rest. Off,
-    /// the default: table_complex 2 -> 3 of 4 parts within the bars (its lower
-    /// drawer found), storage_complex 6 -> 4 of 6 (docs/training.md).
+    /// hid (`track::carried`); and a candidate from rest refines 4 poses instead
+    /// of 2, and a refused group's pieces its refined poses too, the motion
+    /// frames choosing among poses the end state cannot tell apart. Off, the
+    /// default: measured before the split weighed the motion frames, it found
+    /// table_complex's lower drawer (2 -> 3 of 4 within the bars) and broke
+    /// storage_complex (6 -> 4 of 6) (docs/training.md).
     pub carry_content: bool,
     /// Weight of the depth loss log(1 + |D - D_gt|) on the motion frames (as stage
     /// I's `depth_weight`), where the dataset has depth maps; 0 = RGB only (the
@@ -372,11 +371,13 @@ pub struct NodeTracker {
     pub end_scan: Option<EndScan>,
 }
 
-/// End poses (world form) a search from rest passes on, with
-/// `track.carry_content`: those it was given to refine besides its own (a
-/// refused group's, for its pieces), and those it refined.
+/// End poses (world form) a search from rest passes on: the motion a piece was
+/// split off its group by (`split_group`), and, with `track.carry_content`,
+/// those it was given to refine besides its own (a refused group's, for its
+/// pieces) and those it refined.
 #[derive(Clone, Debug, Default)]
 struct GroupPoses {
+    split: Option<Rigid>,
     inherited: Vec<Rigid>,
     refined: Vec<Rigid>,
 }
@@ -1562,10 +1563,7 @@ impl NodeTracker {
 
     /// The mean robust photometric loss of end-state `views` (time 1) for each of
     /// part `p`'s end poses `poses`, the rest as `parts` has it: what
-    /// `articulated_loss` gives each. Each view is rendered once with the part's
-    /// Gaussians transparent (the CPU rasterizer), and a pose only projects the
-    /// part's Gaussians and composites again the tiles they reach there
-    /// (`Repaintable`: those pixels as a whole render gives them, to the bit).
+    /// `articulated_loss` gives each (see `losses_of_part_poses`).
     fn end_losses_of_part_poses(
         &self,
         parts: &TrackedParts,
@@ -1573,38 +1571,55 @@ impl NodeTracker {
         poses: &[NodePose],
         views: &[&TrainView],
     ) -> Vec<f32> {
-        let last = parts.poses.len() - 1;
+        self.losses_of_part_poses(parts, p, poses.len(), views.iter().map(|&v| (v, 1.0)).collect(), |j, _| poses[j])
+    }
+
+    /// The mean robust photometric loss of `views` (each with the time it is
+    /// rendered at) for each of `count` poses of part `p`, `pose_at(j, t)` the
+    /// j-th at time t, the other parts at their poses in `parts` at each view's
+    /// time. Each view is rendered once with the part's Gaussians transparent (the
+    /// CPU rasterizer), and a pose only projects the part's Gaussians and
+    /// composites again the tiles they reach there (`Repaintable`: those pixels
+    /// as a whole render gives them, to the bit).
+    fn losses_of_part_poses(
+        &self,
+        parts: &TrackedParts,
+        p: usize,
+        count: usize,
+        views: Vec<(&TrainView, f32)>,
+        pose_at: impl Fn(usize, f32) -> NodePose + Sync,
+    ) -> Vec<f32> {
         let bg = Vec3::from(self.config.eval_background);
         let cap = self.config.track.validation_residual_cap;
         let rows: Vec<usize> =
             (0..self.binding.len()).filter(|&i| parts.node_part[self.binding[i] as usize] == p + 1).collect();
-        let mut without = self
-            .revealed
-            .with(self.deformed(&parts.node_poses(&self.node_centres, &parts.poses[last]), &self.gains[last]));
-        rows.iter().for_each(|&i| without.opacity_logits[i] = f32::NEG_INFINITY);
-        // Per view: the render without the part, its target and each pixel's residual.
-        let bases: Vec<(Repaintable, Vec<f32>, ViewResiduals)> = views
+        let bases: Vec<ViewWithoutPart> = views
             .iter()
-            .map(|v| {
+            .map(|&(v, t)| {
+                let at = self.interpolated(&parts.poses, t, NodePose::lerp);
+                let gains = self.gains_at(t);
+                let mut without = self.revealed.with(self.deformed(&parts.node_poses(&self.node_centres, &at), &gains));
+                rows.iter().for_each(|&i| without.opacity_logits[i] = f32::NEG_INFINITY);
                 let target = v.target(bg);
                 let render = Repaintable::new(&without, &v.camera, &v.render_options(bg));
-                let base = ViewResiduals::new(pixel_residuals(render.color(), &target, cap));
-                (render, target, base)
+                let residuals = ViewResiduals::new(pixel_residuals(render.color(), &target, cap));
+                ViewWithoutPart { at, gains, render, target, residuals }
             })
             .collect();
-        poses
-            .par_iter()
-            .map(|&pose| {
-                let mut at = parts.poses[last].clone();
-                at[p] = pose;
-                let moved = self.deformed_rows(&rows, &parts.node_poses(&self.node_centres, &at), &self.gains[last]);
+        (0..count)
+            .into_par_iter()
+            .map(|j| {
                 let total: f64 = views
                     .iter()
                     .zip(&bases)
-                    .map(|(v, (render, target, base))| {
-                        let repaint = render.repaint(&rows, &moved);
-                        let inside = repainted_residuals(&repaint, target, cap).map(|(_, e)| e);
-                        base.sum_with(&repaint.pixels, inside) / f64::from(v.camera.width() * v.camera.height())
+                    .map(|(&(v, t), base)| {
+                        let mut at = base.at.clone();
+                        at[p] = pose_at(j, t);
+                        let moved = self.deformed_rows(&rows, &parts.node_poses(&self.node_centres, &at), &base.gains);
+                        let repaint = base.render.repaint(&rows, &moved);
+                        let inside = repainted_residuals(&repaint, &base.target, cap).map(|(_, e)| e);
+                        base.residuals.sum_with(&repaint.pixels, inside)
+                            / f64::from(v.camera.width() * v.camera.height())
                     })
                     .sum();
                 (total / views.len().max(1) as f64) as f32
@@ -1765,11 +1780,14 @@ impl NodeTracker {
         // A coarse hypothesis is a grid point, the tracked pose a refined one:
         // compare them only after both are refined (a raw grid point never won).
         let count = if from_rest && carry { SEARCH_REFINED_FROM_REST } else { SEARCH_REFINED };
-        let mut candidates = distinct_poses(&scored, count, 2.0 * step, 0.1 * self.object_size);
+        let centre = parts.centres[p];
+        // A piece of a split group starts from the motion it was split off by,
+        // which the motion frames chose as well as the end state (`split_group`).
+        let mut candidates: Vec<NodePose> = group.split.iter().map(|m| NodePose::from_rigid(m, centre)).collect();
+        candidates.extend(distinct_poses(&scored, count, 2.0 * step, 0.1 * self.object_size));
         // A refused group's refined motions are tried by its pieces: a piece
         // of a part moves as the part does, and the group, larger, is placed
         // by more of the end state than the piece alone.
-        let centre = parts.centres[p];
         if carry {
             candidates.extend(group.inherited.iter().map(|m| NodePose::from_rigid(m, centre)));
         }
@@ -1778,7 +1796,15 @@ impl NodeTracker {
             best = scored.first().map(|s| s.0),
             "stage II: a global search of a part's end pose"
         );
-        let Some(mut best_loss) = self.refit_end_poses_and(end_views, &[p]) else { return false };
+        // A piece split off its group by the motion frames as well as the end
+        // state is judged by both (`end_and_paced_residual`): the end state alone
+        // prefers a look-alike's place (`split_group`).
+        let judged = |tracker: &Self, refit_loss: f32| match group.split {
+            Some(_) => tracker.end_and_paced_residual(p, &check, frames),
+            None => refit_loss,
+        };
+        let Some(refit_loss) = self.refit_end_poses_and(end_views, &[p]) else { return false };
+        let mut best_loss = judged(self, refit_loss);
         let mut best_state = (self.articulation.clone(), self.knots[last].clone());
         let tracked_refit = best_state.clone();
         let mut replaced = false;
@@ -1808,6 +1834,7 @@ impl NodeTracker {
         for (loss, searched, knots) in refits.into_iter().flatten() {
             self.articulation = Some(searched);
             self.knots[last] = knots;
+            let loss = judged(self, loss);
             let beats_best = loss < best_loss * (1.0 - tolerance);
             let searched = self.articulation.as_ref().expect("parts");
             let clearly_better = if from_rest {
@@ -1834,6 +1861,8 @@ impl NodeTracker {
                     rest_changed,
                     moved_changed,
                     is_part,
+                    loss,
+                    joint = ?searched.end_joint(p),
                     "stage II: a candidate's searched end pose against its nodes at rest, where they differ"
                 );
                 // Nor may it explain the end state worse than its refit from
@@ -1845,9 +1874,13 @@ impl NodeTracker {
                 // from a look-alike's (table_complex's lower drawer front,
                 // turned onto the open left door's place, 0.6 % better than
                 // slid shut, docs/training.md).
+                // A split piece's candidates are all judged by the end state and
+                // the frames alike (`judged`), so the best of them is taken: its
+                // split motion is a grid pose, no likelier than the others.
                 is_part
                     && match best_state.0.as_ref().filter(|_| replaced) {
                         None => loss < best_loss,
+                        Some(_) if group.split.is_some() => loss < best_loss,
                         Some(_) if !carry => beats_best,
                         Some(_) if !beats_best && loss >= best_loss * (1.0 + tolerance) => false,
                         Some(kept) => {
@@ -2361,6 +2394,17 @@ impl CheckRenders<'_> {
 }
 
 /// One view's per-pixel residual and its sum.
+/// One view of `losses_of_part_poses` at its time: the parts' poses and the
+/// nodes' gains then, the render without the part judged, its target and each
+/// pixel's residual there.
+struct ViewWithoutPart {
+    at: Vec<NodePose>,
+    gains: Vec<f32>,
+    render: Repaintable,
+    target: Vec<f32>,
+    residuals: ViewResiduals,
+}
+
 struct ViewResiduals {
     residual: Vec<f32>,
     sum: f64,
