@@ -1163,7 +1163,9 @@ pub(super) mod tests {
         // about its far edge or by a slide: a plain flat panel looks the same
         // either way up, so the end state alone (nearly) ties the two motions, as
         // it ties a drawer slid shut with a look-alike's place; the motion frames
-        // on the way (the panel standing up, or lying half way along) do not.
+        // on the way (the panel standing up, or lying half way along) do not,
+        // though they are weighed at a steady pace and the panel moved at a
+        // hand's (minimum jerk: slow, fast, slow).
         use std::f64::consts::PI;
         let door = Door { from: 0.5, to: 0.9, hinge: 0.9, angle: 0.0 };
         let (mut tracker, members, mut rest) = panels(-0.9, 0.9, 2400, 256, &[door], 0.0);
@@ -1187,9 +1189,10 @@ pub(super) mod tests {
         for (truth, name) in [(0, "flip"), (1, "slide")] {
             let motion = [&flip, &slide][truth];
             let end_views = views_of(&moved_along(&rest, &members[0], motion, 1.0), 1.0, 8);
-            let frames: Vec<TrainView> = [0.3, 0.5, 0.7]
+            let hand = |t: f64| t * t * t * (10.0 - 15.0 * t + 6.0 * t * t);
+            let frames: Vec<TrainView> = [0.3f32, 0.5, 0.7]
                 .iter()
-                .flat_map(|&t| views_of(&moved_along(&rest, &members[0], motion, f64::from(t)), t, 3))
+                .flat_map(|&t| views_of(&moved_along(&rest, &members[0], motion, hand(f64::from(t))), t, 3))
                 .collect();
             let (end_refs, frame_refs): (Vec<&TrainView>, Vec<&TrainView>) =
                 (end_views.iter().collect(), frames.iter().collect());
