@@ -8,7 +8,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 use crate::error::{write_atomic, Error, Result};
 
 /// Version tag of the checkpoint layout (bump when a trainer's fields change).
-const FORMAT: u32 = 4;
+const FORMAT: u32 = 5;
 
 #[derive(Serialize, Deserialize)]
 struct Checkpoint<T> {

@@ -161,6 +161,17 @@ pub struct TrackConfig {
     /// table_complex's lower drawer (2 -> 3 of 4 within the bars) and broke
     /// storage_complex (6 -> 4 of 6) (docs/training.md).
     pub carry_content: bool,
+    /// A group of base nodes that no one pose explains is split with the motion
+    /// frames weighed beside the end state (`track::end_state::split_group`):
+    /// seeds and chunks choose motions on the end state plus 6 frames along each
+    /// motion at a steady pace, each chunk with the others moved as they chose;
+    /// a piece's search starts from its motion and is judged the same way; what
+    /// no motion took is searched from rest; a candidate's trim weighs the frames;
+    /// and a part its end pose mostly hides counts as seen when the frames watched
+    /// it go. Off, the default: table_complex 2 -> 4 of 4 parts within the bars
+    /// (its lower drawer and right door found), storage_complex 6 -> 5 of 6 (its
+    /// middle right door lost) (docs/training.md).
+    pub split_on_frames: bool,
     /// Weight of the depth loss log(1 + |D - D_gt|) on the motion frames (as stage
     /// I's `depth_weight`), where the dataset has depth maps; 0 = RGB only (the
     /// default: an Aria RGB camera has no depth).
@@ -206,6 +217,7 @@ impl Default for TrackConfig {
             freeze_rotation: 0.02,
             revealed_gaussians: 0,
             carry_content: false,
+            split_on_frames: false,
             refit_from_start: false,
             depth_weight: 0.0,
             follow_hand: true,

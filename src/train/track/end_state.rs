@@ -131,8 +131,7 @@ impl NodeTracker {
             // Each piece's search starts from the motion it was split off by;
             // with `track.carry_content` its pieces refine the group's poses too.
             for (piece_nodes, motion) in self.split_group(&nodes, frames, end_views) {
-                let mut piece =
-                    GroupPoses { inherited: group.refined.clone(), refined: Vec::new(), split: Some(motion) };
+                let mut piece = GroupPoses { inherited: group.refined.clone(), refined: Vec::new(), split: motion };
                 if let Some(given_back) =
                     self.try_candidate(&piece_nodes, threshold, frames, end_views, &views, &mut piece)
                 {
@@ -219,7 +218,7 @@ impl NodeTracker {
         let found = self.articulation.clone().expect("the part searched");
         let motion = found.poses[last][p].to_rigid(found.centres[p]);
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), SEED_VIEWS);
-        let paced = paced_frames(frames);
+        let paced = if self.config.track.split_on_frames { paced_frames(frames) } else { Vec::new() };
         let chunks = self.spatial_chunks(nodes, (nodes.len() / TRIM_CHUNK_NODES).max(1));
         let worse: Vec<usize> = chunks
             .iter()
@@ -284,16 +283,24 @@ impl NodeTracker {
     /// onto the open upper drawer's place, and either door's chunks moved onto
     /// the other's open place clear their own closed place for little cost; the
     /// frames on the way, and the other chunks where their motions put them, do.
-    /// A motion's piece is the largest connected set of its chunks' nodes; pieces
-    /// of at least 1 % of the nodes, largest first (at most `MAX_PIECES`).
-    fn split_group(&self, nodes: &[usize], frames: &[TrainView], end_views: &[TrainView]) -> Vec<(Vec<usize>, Rigid)> {
+    /// A motion's piece is the largest connected set of its chunks' nodes, then
+    /// the connected sets of what no motion's piece took, each to be searched
+    /// from rest on its own (no motion: a door whose turn no seed found);
+    /// pieces of at least 1 % of the nodes, largest first (at most `MAX_PIECES`).
+    fn split_group(
+        &self,
+        nodes: &[usize],
+        frames: &[TrainView],
+        end_views: &[TrainView],
+    ) -> Vec<(Vec<usize>, Option<Rigid>)> {
         let n = self.node_centres.len();
         let min_nodes = (n / 100).max(8);
         if nodes.len() < 2 * min_nodes {
             return Vec::new();
         }
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), SEED_VIEWS);
-        let paced = paced_frames(frames);
+        let on_frames = self.config.track.split_on_frames;
+        let paced = if on_frames { paced_frames(frames) } else { Vec::new() };
         let base = self.articulation.clone().expect("parts set by the caller");
         let group = self.with_candidate(&base, nodes);
         let p = group.centres.len() - 1;
@@ -317,7 +324,9 @@ impl NodeTracker {
         let motions = found;
         let fine = self.spatial_chunks(nodes, (nodes.len() / FINE_NODES).max(1));
         let mut chose: Vec<Option<usize>> = vec![None; fine.len()];
-        for sweep in 0..SPLIT_SWEEPS {
+        // Without `split_on_frames` each chunk chooses once, on the end state, the
+        // rest of the group at rest.
+        for sweep in 0..if on_frames { SPLIT_SWEEPS } else { 1 } {
             let mut changed = 0;
             for c in 0..fine.len() {
                 let others: Vec<(Vec<usize>, Rigid)> = motions
@@ -329,7 +338,7 @@ impl NodeTracker {
                     })
                     .filter(|(members, _)| !members.is_empty())
                     .collect();
-                let context = self.with_paced_pieces(&base, &others);
+                let context = if on_frames { self.with_paced_pieces(&base, &others) } else { base.clone() };
                 let gains = self.gains_of_motions(&context, &fine[c], &motions, &check, &paced);
                 let best = gains.iter().enumerate().filter(|(_, g)| **g > 0.0).max_by(|a, b| a.1.total_cmp(b.1));
                 let choice = best.map(|(m, _)| m);
@@ -372,14 +381,30 @@ impl NodeTracker {
             .filter(|(piece, _)| piece.len() >= min_nodes)
             .collect();
         pieces.sort_by_key(|(piece, _)| std::cmp::Reverse(piece.len()));
-        pieces.truncate(MAX_PIECES);
+        // What no motion's piece took: storage_complex's middle right door, turned
+        // 120 deg on the hinge line of the 60-deg door below it, whose turn no seed
+        // found, its chunks with no motion or with stray ones, was never tried.
+        let mut taken = vec![false; n];
+        pieces.iter().flat_map(|(piece, _)| piece).for_each(|&k| taken[k] = true);
+        let mut left: Vec<usize> = nodes.iter().copied().filter(|&k| !taken[k]).collect();
+        left.sort_unstable();
+        let mut unmoved: Vec<Vec<usize>> =
+            connected_sets(&graph, &left).into_iter().filter(|set| on_frames && set.len() >= min_nodes).collect();
+        unmoved.sort_by_key(|set| std::cmp::Reverse(set.len()));
         tracing::info!(
             nodes = nodes.len(),
             seeds = seeds.len(),
             motions = motions.len(),
             pieces = ?pieces.iter().map(|(piece, _)| piece.len()).collect::<Vec<_>>(),
+            unmoved = ?unmoved.iter().map(Vec::len).collect::<Vec<_>>(),
             "stage II: a group no one pose explains, split by the poses of its pieces"
         );
+        let mut pieces: Vec<(Vec<usize>, Option<Rigid>)> = pieces
+            .into_iter()
+            .map(|(piece, motion)| (piece, on_frames.then_some(motion)))
+            .chain(unmoved.into_iter().map(|set| (set, None)))
+            .collect();
+        pieces.truncate(MAX_PIECES);
         pieces
     }
 
@@ -621,8 +646,8 @@ impl NodeTracker {
 
     /// Whether part `p` (found from a group of `candidate_nodes` nodes whose
     /// residual was above `threshold`) shows its own content where its end pose
-    /// put it: at least half its nodes seen there (or, when
-    /// its end pose hides most of them, the motion `frames` along its path
+    /// put it: at least half its nodes seen there (or, with `carry_content` or
+    /// `split_on_frames`, when its end pose hides most of them, the motion `frames` along its path
     /// explaining the pixels it changes clearly better than rest: a drawer seen
     /// sliding shut), at a median residual (relit) below the threshold, a hinge
     /// on the part, and, with an end scan, its surface nearer the scan's there
@@ -644,8 +669,10 @@ impl NodeTracker {
         let parts = self.articulation.as_ref().expect("the part judged");
         let joint = parts.end_joint(p);
         let scan = self.end_scan_agreement(parts, p, &parts.nodes_labelled(p + 1));
-        // Fewer than half seen: the frames must have watched it go out of sight.
-        let hidden_judged_by_frames = 2 * seen < candidate_nodes;
+        // Fewer than half seen: with `carry_content` or `split_on_frames`, the
+        // frames must have watched it go out of sight.
+        let track = &self.config.track;
+        let hidden_judged_by_frames = (track.carry_content || track.split_on_frames) && 2 * seen < candidate_nodes;
         let path_against_rest = hidden_judged_by_frames.then(|| {
             let mut held = parts.clone();
             held.poses.iter_mut().for_each(|k| k[p] = NodePose::IDENTITY);
@@ -1210,7 +1237,9 @@ pub(super) mod tests {
     fn a_group_of_two_doors_side_by_side_splits_into_the_doors() {
         // A base and two doors in a row, the first hinged at the base, the
         // second at the far end: the doors touch, so their moved nodes are one
-        // group of the node graph, which no one pose explains.
+        // group of the node graph, which no one pose explains. Split on the end
+        // state alone, and with `split_on_frames` (then each piece comes with its
+        // door's turn).
         use std::f32::consts::FRAC_PI_2;
         let doors = [
             Door { from: 0.1, to: 0.5, hinge: 0.1, angle: -FRAC_PI_2 },
@@ -1232,27 +1261,33 @@ pub(super) mod tests {
         let (a, b) = (node_of(&members[0]), node_of(&members[1]));
         let group: Vec<usize> = (0..n).filter(|&k| a[k] || b[k]).collect();
         let (_, _, half) = panels(-0.9, 0.9, 2400, 256, &doors, 0.5);
-        let pieces = tracker.split_group(&group, &views_of(&half, 0.5, 4), &views_of(&end, 1.0, 16));
-        assert!(pieces.len() >= 2, "pieces {:?}", pieces.iter().map(|p| p.0.len()).collect::<Vec<_>>());
-        // The two largest pieces are the two doors, each nearly pure and most of
-        // its door, and each comes with its door's turn (within the search's step).
-        let mut doors_found = Vec::new();
-        for (piece, motion) in &pieces[..2] {
-            let on_a = piece.iter().filter(|&&k| a[k]).count();
-            let on_b = piece.len() - on_a;
-            let (door, on) = if on_a >= on_b { (&a, on_a) } else { (&b, on_b) };
-            let size = door.iter().filter(|&&x| x).count();
-            assert!(on as f32 >= 0.9 * piece.len() as f32, "{on} of a piece's {} on one door", piece.len());
-            assert!(on as f32 >= 0.5 * size as f32, "{on} of the door's {size} nodes in its piece");
-            let truth = &doors[usize::from(on_a < on_b)];
-            let turn = crate::motion::extract_joint(motion, DVec3::ZERO);
-            let signed = turn.amount as f32 * turn.axis.y.signum() as f32;
-            assert!((signed - truth.angle).abs() <= 0.3, "a turn of {signed} for {}", truth.angle);
-            let hinge = turn.origin.x - turn.axis.x * turn.origin.dot(turn.axis);
-            assert!((hinge as f32 - truth.hinge).abs() <= 0.1, "hinge at x = {hinge} for {}", truth.hinge);
-            doors_found.push(on_a >= on_b);
+        for on_frames in [false, true] {
+            tracker.config.track.split_on_frames = on_frames;
+            let pieces = tracker.split_group(&group, &views_of(&half, 0.5, 4), &views_of(&end, 1.0, 16));
+            assert!(pieces.len() >= 2, "pieces {:?}", pieces.iter().map(|p| p.0.len()).collect::<Vec<_>>());
+            // The two largest pieces are the two doors, each nearly pure and most of
+            // its door, and each comes with its door's turn (within the search's step).
+            let mut doors_found = Vec::new();
+            for (piece, motion) in &pieces[..2] {
+                let on_a = piece.iter().filter(|&&k| a[k]).count();
+                let on_b = piece.len() - on_a;
+                let (door, on) = if on_a >= on_b { (&a, on_a) } else { (&b, on_b) };
+                let size = door.iter().filter(|&&x| x).count();
+                assert!(on as f32 >= 0.9 * piece.len() as f32, "{on} of a piece's {} on one door", piece.len());
+                assert!(on as f32 >= 0.5 * size as f32, "{on} of the door's {size} nodes in its piece");
+                assert_eq!(motion.is_some(), on_frames, "a piece's motion comes with the frames");
+                if let Some(motion) = motion {
+                    let truth = &doors[usize::from(on_a < on_b)];
+                    let turn = crate::motion::extract_joint(motion, DVec3::ZERO);
+                    let signed = turn.amount as f32 * turn.axis.y.signum() as f32;
+                    assert!((signed - truth.angle).abs() <= 0.3, "a turn of {signed} for {}", truth.angle);
+                    let hinge = turn.origin.x - turn.axis.x * turn.origin.dot(turn.axis);
+                    assert!((hinge as f32 - truth.hinge).abs() <= 0.1, "hinge at x = {hinge} for {}", truth.hinge);
+                }
+                doors_found.push(on_a >= on_b);
+            }
+            assert_ne!(doors_found[0], doors_found[1], "one piece per door");
         }
-        assert_ne!(doors_found[0], doors_found[1], "one piece per door");
     }
 
     #[test]
@@ -1596,6 +1631,7 @@ pub(super) mod tests {
         config.track.nodes = gs.len();
         config.track.gaussians_per_node = 1;
         config.track.knots = 3;
+        config.track.split_on_frames = true;
         config.eval_background = [0.0; 3];
         let mut tracker = NodeTracker::new(config, &gs, &[]).expect("tracker");
         let mut node_part = vec![0; tracker.node_centres.len()];
@@ -1623,6 +1659,11 @@ pub(super) mod tests {
         assert!(
             !tracker.looks_right_where_moved(0, drawer_nodes, 0.04, 0.25, &views, &still),
             "frames in which it never moved do not vouch for its hidden nodes"
+        );
+        tracker.config.track.split_on_frames = false;
+        assert!(
+            !tracker.looks_right_where_moved(0, drawer_nodes, 0.04, 0.25, &views, &sliding),
+            "by default half its nodes must be seen"
         );
     }
 
