@@ -2405,7 +2405,6 @@ impl CheckRenders<'_> {
     }
 }
 
-/// One view's per-pixel residual and its sum.
 /// One view of `losses_of_part_poses` at its time: the parts' poses and the
 /// nodes' gains then, the render without the part judged, its target and each
 /// pixel's residual there.
@@ -2417,6 +2416,7 @@ struct ViewWithoutPart {
     residuals: ViewResiduals,
 }
 
+/// One view's per-pixel residual and its sum.
 struct ViewResiduals {
     residual: Vec<f32>,
     sum: f64,

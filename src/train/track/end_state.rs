@@ -308,7 +308,7 @@ impl NodeTracker {
             self.gaussians_labelled(&group.node_part, p + 1).into_iter().map(|i| self.gaussians.mean(i)).collect();
         let seeds = self.spatial_chunks(nodes, (nodes.len() / SEED_NODES).max(2));
         let axes = self.object_box_axes();
-        let mut found: Vec<Rigid> = Vec::new();
+        let mut motions: Vec<Rigid> = Vec::new();
         for seed in &seeds {
             let parts = self.with_candidate(&base, seed);
             let c = parts.centres[p];
@@ -318,10 +318,9 @@ impl NodeTracker {
             let best = gains.iter().zip(&grid).filter(|(g, _)| **g > 0.0).max_by(|a, b| a.0.total_cmp(b.0));
             if let Some((gain, motion)) = best {
                 tracing::debug!(gain, "stage II: a seed's best coarse end pose");
-                found.push(*motion);
+                motions.push(*motion);
             }
         }
-        let motions = found;
         let fine = self.spatial_chunks(nodes, (nodes.len() / FINE_NODES).max(1));
         let mut chose: Vec<Option<usize>> = vec![None; fine.len()];
         // Without `split_on_frames` each chunk chooses once, on the end state, the
