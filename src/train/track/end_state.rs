@@ -218,7 +218,7 @@ impl NodeTracker {
         let found = self.articulation.clone().expect("the part searched");
         let motion = found.poses[last][p].to_rigid(found.centres[p]);
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), SEED_VIEWS);
-        let paced = if self.config.track.split_on_frames { paced_frames(frames) } else { Vec::new() };
+        let paced = self.paced_frames(frames);
         let chunks = self.spatial_chunks(nodes, (nodes.len() / TRIM_CHUNK_NODES).max(1));
         let worse: Vec<usize> = chunks
             .iter()
@@ -300,7 +300,7 @@ impl NodeTracker {
         }
         let check = evenly_spread(&end_views.iter().collect::<Vec<_>>(), SEED_VIEWS);
         let on_frames = self.config.track.split_on_frames;
-        let paced = if on_frames { paced_frames(frames) } else { Vec::new() };
+        let paced = self.paced_frames(frames);
         let base = self.articulation.clone().expect("parts set by the caller");
         let group = self.with_candidate(&base, nodes);
         let p = group.centres.len() - 1;
@@ -328,16 +328,20 @@ impl NodeTracker {
         for sweep in 0..if on_frames { SPLIT_SWEEPS } else { 1 } {
             let mut changed = 0;
             for c in 0..fine.len() {
-                let others: Vec<(Vec<usize>, Rigid)> = motions
-                    .iter()
-                    .enumerate()
-                    .map(|(m, motion)| {
-                        let members = (0..fine.len()).filter(|&d| d != c && chose[d] == Some(m));
-                        (members.flat_map(|d| fine[d].iter().copied()).collect::<Vec<usize>>(), *motion)
-                    })
-                    .filter(|(members, _)| !members.is_empty())
-                    .collect();
-                let context = if on_frames { self.with_paced_pieces(&base, &others) } else { base.clone() };
+                let context = if on_frames {
+                    let others: Vec<(Vec<usize>, Rigid)> = motions
+                        .iter()
+                        .enumerate()
+                        .map(|(m, motion)| {
+                            let members = (0..fine.len()).filter(|&d| d != c && chose[d] == Some(m));
+                            (members.flat_map(|d| fine[d].iter().copied()).collect::<Vec<usize>>(), *motion)
+                        })
+                        .filter(|(members, _)| !members.is_empty())
+                        .collect();
+                    self.with_paced_pieces(&base, &others)
+                } else {
+                    base.clone()
+                };
                 let gains = self.gains_of_motions(&context, &fine[c], &motions, &check, &paced);
                 let best = gains.iter().enumerate().filter(|(_, g)| **g > 0.0).max_by(|a, b| a.1.total_cmp(b.1));
                 let choice = best.map(|(m, _)| m);
@@ -407,6 +411,18 @@ impl NodeTracker {
         pieces
     }
 
+    /// The motion frames a split, its pieces and a candidate's trim weigh
+    /// motions on, with `track.split_on_frames` (none without it):
+    /// `PACED_FRAMES` of them evenly spread over the motion window's inside (a
+    /// frame at either end shows rest or the end state, which the end views judge).
+    fn paced_frames<'a>(&self, frames: &'a [TrainView]) -> Vec<&'a TrainView> {
+        if !self.config.track.split_on_frames {
+            return Vec::new();
+        }
+        let inside: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t > 0.05 && t < 0.95)).collect();
+        evenly_spread(&inside, PACED_FRAMES)
+    }
+
     /// `base`'s parts and, for each of `pieces` (base nodes and a motion), one
     /// more part moving along the motion at a steady pace.
     fn with_paced_pieces(&self, base: &TrackedParts, pieces: &[(Vec<usize>, Rigid)]) -> TrackedParts {
@@ -440,7 +456,7 @@ impl NodeTracker {
             &self.targets(end_views),
             cap,
         );
-        let paced = paced_frames(frames);
+        let paced = self.paced_frames(frames);
         if paced.is_empty() {
             return at_end;
         }
@@ -936,14 +952,6 @@ impl NodeTracker {
         }
         best.into_iter().map(|b| b.1).collect()
     }
-}
-
-/// The motion frames a split and a candidate's trim weigh motions on:
-/// `PACED_FRAMES` of them evenly spread over the motion window's inside (a
-/// frame at either end shows rest or the end state, which the end views judge).
-fn paced_frames(frames: &[TrainView]) -> Vec<&TrainView> {
-    let inside: Vec<&TrainView> = frames.iter().filter(|v| v.time.is_some_and(|t| t > 0.05 && t < 0.95)).collect();
-    evenly_spread(&inside, PACED_FRAMES)
 }
 
 /// How many of `nodes` have a residual (are seen), and the median of those
