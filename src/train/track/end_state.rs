@@ -269,7 +269,8 @@ impl NodeTracker {
     /// A candidate group that no one pose explains, split into the pieces that
     /// one motion each does, each with its motion. The group is cut into spatial
     /// seeds of about `SEED_NODES` nodes; each seed's best coarse end pose (pivots
-    /// on its own box's edges and on the group's) that beats rest is a motion
+    /// on its own box's edges, on the group's, and on the group's edge in the
+    /// seed's face where it is a plate: `end_pose_grid`) that beats rest is a motion
     /// (motions within a grid step of each other count as one: axes, amounts and
     /// hinge lines alike). Then the group is cut finer (`FINE_NODES`), and each
     /// fine chunk goes with the motion whose moving it explains the views best,
@@ -384,9 +385,9 @@ impl NodeTracker {
             .filter(|(piece, _)| piece.len() >= min_nodes)
             .collect();
         pieces.sort_by_key(|(piece, _)| std::cmp::Reverse(piece.len()));
-        // What no motion's piece took: storage_complex's middle right door, turned
-        // 120 deg on the hinge line of the 60-deg door below it, whose turn no seed
-        // found, its chunks with no motion or with stray ones, was never tried.
+        // What no motion's piece took (chunks with no motion, or with one whose
+        // piece was too small or not connected to it) is tried too, searched from
+        // rest: a part no seed's motion fits is otherwise never tried.
         let mut taken = vec![false; n];
         pieces.iter().flat_map(|(piece, _)| piece).for_each(|&k| taken[k] = true);
         let mut left: Vec<usize> = nodes.iter().copied().filter(|&k| !taken[k]).collect();
@@ -1670,7 +1671,7 @@ pub(super) mod tests {
         tracker.config.track.split_on_frames = false;
         assert!(
             !tracker.looks_right_where_moved(0, drawer_nodes, 0.04, 0.25, &views, &sliding),
-            "by default half its nodes must be seen"
+            "without the frames' split half its nodes must be seen"
         );
     }
 
