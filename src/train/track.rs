@@ -1672,10 +1672,11 @@ impl NodeTracker {
     /// axes (`box_axes`; and the part's own axis) through the edges of the part's box, and
     /// slides along those axes; empty for a part of fewer than three Gaussians.
     /// `around`: points whose box's edges are pivots too (a piece of a door
-    /// turns about the door's edge, not its own), and pivots with one coordinate
-    /// from each box: the row's outer edge in the plane of the piece's face
-    /// (storage_complex's row of doors reaches 3.6 cm in front of their faces,
-    /// and a hinge that far off lands a door turned 120 deg 6 cm off).
+    /// turns about the door's edge, not its own), and, where the part is a plate
+    /// across the axis (thinner than `THIN` of its width), pivots on the edges of
+    /// `around` in the planes of the part's faces (storage_complex's row of doors
+    /// reaches 3.6 cm in front of their faces, and a hinge that far off lands a
+    /// door turned 120 deg 6 cm off).
     /// `principal`: the object's box axes (`object_box_axes`, computed once by
     /// the caller for all its grids).
     fn end_pose_grid(&self, parts: &TrackedParts, p: usize, around: &[Vec3], principal: [Vec3; 3]) -> Vec<NodePose> {
@@ -3356,7 +3357,7 @@ mod tests {
         assert!(best < 0.005, "the grid's nearest pose is {best} m off the turn");
         // The premise: the turn about the nearest corners of the row's box (at
         // its front and back) or of the piece's own (its edge at x = 0.3) lands
-        // it 7 cm or more off.
+        // it 6.5 cm or more off.
         let about = |pivot: Vec3| NodePose { rotation: turn, translation: turn * (centre - pivot) + pivot - centre };
         for pivot in [Vec3::new(0.5, -0.04, 0.0), Vec3::new(0.5, 0.06, 0.0), Vec3::new(0.3, 0.0, 0.0)] {
             let off = worst(&about(pivot));
