@@ -388,13 +388,19 @@ impl NodeTracker {
         // What no motion's piece took (chunks with no motion, or with one whose
         // piece was too small or not connected to it) is tried too, searched from
         // rest: a part no seed's motion fits is otherwise never tried.
-        let mut taken = vec![false; n];
-        pieces.iter().flat_map(|(piece, _)| piece).for_each(|&k| taken[k] = true);
-        let mut left: Vec<usize> = nodes.iter().copied().filter(|&k| !taken[k]).collect();
-        left.sort_unstable();
-        let mut unmoved: Vec<Vec<usize>> =
-            connected_sets(&graph, &left).into_iter().filter(|set| on_frames && set.len() >= min_nodes).collect();
-        unmoved.sort_by_key(|set| std::cmp::Reverse(set.len()));
+        // Without `split_on_frames` the split returns the motions' pieces only.
+        let unmoved: Vec<Vec<usize>> = if on_frames {
+            let mut taken = vec![false; n];
+            pieces.iter().flat_map(|(piece, _)| piece).for_each(|&k| taken[k] = true);
+            let mut left: Vec<usize> = nodes.iter().copied().filter(|&k| !taken[k]).collect();
+            left.sort_unstable();
+            let mut sets: Vec<Vec<usize>> =
+                connected_sets(&graph, &left).into_iter().filter(|set| set.len() >= min_nodes).collect();
+            sets.sort_by_key(|set| std::cmp::Reverse(set.len()));
+            sets
+        } else {
+            Vec::new()
+        };
         tracing::info!(
             nodes = nodes.len(),
             seeds = seeds.len(),
